@@ -5,6 +5,7 @@
 //! another stage's files; the runner alone knows about hashing, caching, ordering and timing.
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
+pub mod labels;
 pub mod schema;
 pub mod tables;
 pub mod testing;
@@ -137,9 +138,18 @@ pub trait TypedStage: Send + Sync {
     fn validate(_params: &Self::Params) -> Result<()> {
         Ok(())
     }
-    fn run(&self, params: &Self::Params, inputs: &Inputs, progress: &dyn Progress)
-        -> Result<Tables>;
-    fn export(&self, _params: &Self::Params, _tables: &Tables, _dir: &Path) -> Result<Vec<PathBuf>> {
+    fn run(
+        &self,
+        params: &Self::Params,
+        inputs: &Inputs,
+        progress: &dyn Progress,
+    ) -> Result<Tables>;
+    fn export(
+        &self,
+        _params: &Self::Params,
+        _tables: &Tables,
+        _dir: &Path,
+    ) -> Result<Vec<PathBuf>> {
         Ok(Vec::new())
     }
 }

@@ -172,7 +172,11 @@ mod tests {
         assert!(SCHEMA_FILES.len() > 0);
         for (name, text) in SCHEMA_FILES {
             let (file, schema) = schema_from_json(text).unwrap_or_else(|e| panic!("{name}: {e}"));
-            assert_eq!(&file.table, name, "data_schema/{name}.json names table `{}`", file.table);
+            assert_eq!(
+                &file.table, name,
+                "data_schema/{name}.json names table `{}`",
+                file.table
+            );
             assert!(!schema.fields().is_empty(), "{name} has no fields");
         }
     }

@@ -55,7 +55,11 @@ pub fn list<T: ArrowPrimitiveType>(rows: impl IntoIterator<Item = Vec<T::Native>
 
 /// A `fixed_size_list<T, n>` column from a flat vector of `rows * n` values.
 pub fn fixed_list<T: ArrowPrimitiveType>(n: usize, flat: Vec<T::Native>) -> ArrayRef {
-    assert_eq!(flat.len() % n, 0, "flat length is not a multiple of the list size");
+    assert_eq!(
+        flat.len() % n,
+        0,
+        "flat length is not a multiple of the list size"
+    );
     let values = PrimitiveArray::<T>::from_iter_values(flat);
     Arc::new(FixedSizeListArray::new(
         schema::list_item(T::DATA_TYPE),
@@ -87,7 +91,14 @@ pub fn get_prim<'a, T: ArrowPrimitiveType>(
     let c = column(batch, table, col)?;
     c.as_primitive_opt::<T>()
         .map(|a| a.values().as_ref())
-        .ok_or_else(|| type_error(table, col, &schema::format_type(&T::DATA_TYPE), c.data_type()))
+        .ok_or_else(|| {
+            type_error(
+                table,
+                col,
+                &schema::format_type(&T::DATA_TYPE),
+                c.data_type(),
+            )
+        })
 }
 
 pub fn get_strings<'a>(batch: &'a RecordBatch, table: &str, col: &str) -> Result<&'a StringArray> {

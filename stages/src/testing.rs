@@ -146,7 +146,12 @@ impl TypedStage for TestMap {
         Ok(Tables::from([("test_numbers".to_string(), t)]))
     }
 
-    fn export(&self, _: &MapParams, t: &Tables, dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>> {
+    fn export(
+        &self,
+        _: &MapParams,
+        t: &Tables,
+        dir: &std::path::Path,
+    ) -> Result<Vec<std::path::PathBuf>> {
         let table = &t["test_numbers"];
         let values = tables::get_prim::<Int64Type>(table, "test_numbers", "value")?;
         let text: String = values.iter().map(|v| format!("{v}\n")).collect();
