@@ -1,0 +1,490 @@
+//! Command-line interface: argument parsing (clap) and one function per command. `main.rs`
+//! only dispatches and maps errors to exit codes (0 ok, 1 a stage failed, 2 bad usage/config).
+
+use std::{
+    collections::BTreeSet,
+    path::{Path, PathBuf},
+    sync::Arc,
+};
+
+use anyhow::{anyhow, bail, Context, Result};
+use arrow::util::display::{ArrayFormatter, FormatOptions};
+use clap::{Args, Parser, Subcommand};
+
+use crate::{
+    config::{self, Override, Pipeline},
+    dag::Dag,
+    runner::{self, Outcome, RunOptions, State},
+    store::{Entry, Store},
+};
+
+/// A usage error (exit code 2), as opposed to a failure while working (exit code 1).
+#[derive(Debug)]
+pub struct UsageError(pub String);
+
+impl std::fmt::Display for UsageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+impl std::error::Error for UsageError {}
+
+fn usage(msg: impl Into<String>) -> anyhow::Error {
+    anyhow::Error::new(UsageError(msg.into()))
+}
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "pipe",
+    version,
+    about = "Panoptic NeRF label transfer as a content-hashed stage pipeline",
+    long_about = "Runs the stages declared in pipeline.yaml (scene -> rays -> train -> render -> evaluate -> report), \
+caching every stage's tables under a key made of its code version, parameters and inputs, so only \
+what a change made stale is recomputed.\n\nExit codes: 0 ok, 1 a stage failed, 2 bad usage or configuration."
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct PipelineArgs {
+    /// The pipeline file.
+    #[arg(
+        short = 'f',
+        long = "file",
+        default_value = "pipeline.yaml",
+        global = true
+    )]
+    pub file: PathBuf,
+    /// Override a parameter: STAGE.PARAM=VALUE (VALUE is YAML). Repeatable.
+    #[arg(long = "set", value_name = "STAGE.PARAM=VALUE", global = true)]
+    pub set: Vec<String>,
+    /// Cache directory (default: `cache:` of the pipeline file, else .pipe beside it).
+    #[arg(long, global = true)]
+    pub cache: Option<PathBuf>,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Bring stages up to date: reuse cached outputs, run what is stale.
+    Run {
+        /// Stop after this stage (runs it and what it depends on).
+        #[arg(long, value_name = "STAGE")]
+        until: Option<String>,
+        /// Run only this stage; its inputs must already be up to date.
+        #[arg(long, value_name = "STAGE")]
+        only: Option<String>,
+        /// Re-run this stage even if cached. Repeatable.
+        #[arg(long, value_name = "STAGE")]
+        force: Vec<String>,
+        /// Re-run every selected stage.
+        #[arg(long)]
+        force_all: bool,
+        /// Show what would run and why, without running anything.
+        #[arg(long)]
+        dry_run: bool,
+        /// Fail at once if another `pipe run` holds the cache instead of waiting.
+        #[arg(long)]
+        no_wait: bool,
+        /// How many independent stages may run at once.
+        #[arg(long, short = 'j', default_value_t = 1)]
+        jobs: usize,
+        /// After a stage fails, still run the stages that do not depend on it.
+        #[arg(long)]
+        keep_going: bool,
+        /// Hash every cached file, even those unchanged since they were last verified.
+        #[arg(long)]
+        verify: bool,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// Every stage: fresh, or stale and why.
+    Status {
+        /// Hash every cached file, even those unchanged since they were last verified.
+        #[arg(long)]
+        verify: bool,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// The stage graph, as text or Graphviz (`--dot`).
+    Dag {
+        #[arg(long)]
+        dot: bool,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// A cached stage's tables: schema, row count and first rows.
+    Show {
+        stage: String,
+        /// Only this table.
+        #[arg(long)]
+        table: Option<String>,
+        /// Rows to print.
+        #[arg(long, default_value_t = 5)]
+        head: usize,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// Write a cached stage's human-facing files (PNGs, reports) into a directory.
+    Export {
+        stage: String,
+        #[arg(long, value_name = "DIR")]
+        to: PathBuf,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// Remove cache entries the current pipeline does not reach.
+    Gc {
+        /// Also keep every entry any stage instance has ever produced.
+        #[arg(long)]
+        keep_all_runs: bool,
+        /// Only list what would be removed.
+        #[arg(long)]
+        dry_run: bool,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// The stage kinds this build knows, with their inputs, outputs and default params.
+    Kinds {
+        /// Only this kind.
+        kind: Option<String>,
+    },
+}
+
+fn load(args: &PipelineArgs) -> Result<Pipeline> {
+    let overrides = args
+        .set
+        .iter()
+        .map(|s| Override::parse(s).map_err(usage))
+        .collect::<Result<Vec<_>>>()?;
+    let mut p = config::load(&args.file, &overrides)?;
+    if let Some(c) = &args.cache {
+        p.cache_dir = c.clone();
+    }
+    Ok(p)
+}
+
+pub fn dispatch(cli: Cli) -> Result<i32> {
+    match cli.command {
+        Command::Run {
+            until,
+            only,
+            force,
+            force_all,
+            dry_run,
+            no_wait,
+            jobs,
+            keep_going,
+            verify,
+            pipeline,
+        } => {
+            let p = Arc::new(load(&pipeline)?);
+            let opts = RunOptions {
+                until,
+                only,
+                force,
+                force_all,
+                dry_run,
+                no_wait,
+                jobs,
+                keep_going,
+                verify,
+            };
+            cmd_run(p, &opts)
+        }
+        Command::Status { verify, pipeline } => cmd_status(&load(&pipeline)?, verify),
+        Command::Dag { dot, pipeline } => cmd_dag(&load(&pipeline)?, dot),
+        Command::Show {
+            stage,
+            table,
+            head,
+            pipeline,
+        } => cmd_show(&load(&pipeline)?, &stage, table.as_deref(), head),
+        Command::Export {
+            stage,
+            to,
+            pipeline,
+        } => cmd_export(&load(&pipeline)?, &stage, &to),
+        Command::Gc {
+            keep_all_runs,
+            dry_run,
+            pipeline,
+        } => cmd_gc(&load(&pipeline)?, keep_all_runs, dry_run),
+        Command::Kinds { kind } => cmd_kinds(kind.as_deref()),
+    }
+}
+
+fn cmd_run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<i32> {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    let rep = rt.block_on(runner::run(p, opts)).map_err(|e| {
+        // Selection problems are usage errors.
+        let msg = format!("{e:#}");
+        if msg.contains("no stage named")
+            || msg.contains("cannot be combined")
+            || msg.contains("cannot run only")
+        {
+            usage(msg)
+        } else {
+            e
+        }
+    })?;
+    print!("{}", runner::summary(&rep));
+    Ok(if rep.failed { 1 } else { 0 })
+}
+
+fn cmd_status(p: &Pipeline, verify: bool) -> Result<i32> {
+    let dag = Dag::build(p)?;
+    let store = Store::open_existing(&p.cache_dir);
+    let res = runner::resolve(p, &dag, &store, verify);
+    let rows: Vec<Vec<String>> = dag
+        .order
+        .iter()
+        .map(|&i| {
+            let s = &p.stages[i];
+            let (state, why) = match &res[i].state {
+                State::Fresh(_) => ("fresh", String::new()),
+                State::Stale(why) if res[i].corrupt => ("CORRUPT", why.clone()),
+                State::Stale(why) => ("stale", why.clone()),
+            };
+            vec![
+                s.name.clone(),
+                s.kind.kind().to_string(),
+                state.to_string(),
+                why,
+            ]
+        })
+        .collect();
+    print!(
+        "{}",
+        runner::text_table(&["stage", "kind", "state", "why"], &rows)
+    );
+    Ok(0)
+}
+
+fn cmd_dag(p: &Pipeline, dot: bool) -> Result<i32> {
+    let dag = Dag::build(p)?;
+    if dot {
+        print!("{}", dag.dot(p));
+        return Ok(0);
+    }
+    for &i in &dag.order {
+        let s = &p.stages[i];
+        let ins: Vec<String> = s
+            .inputs
+            .iter()
+            .map(|(slot, up)| {
+                if slot == up {
+                    up.clone()
+                } else {
+                    format!("{slot}={up}")
+                }
+            })
+            .collect();
+        if ins.is_empty() {
+            println!("{} ({})", s.name, s.kind.kind());
+        } else {
+            println!("{} ({}) <- {}", s.name, s.kind.kind(), ins.join(", "));
+        }
+    }
+    Ok(0)
+}
+
+/// The verified manifest of a fresh stage, or a usage error saying how to make it fresh.
+fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<crate::store::Manifest>)> {
+    let i = p
+        .index_of(stage)
+        .ok_or_else(|| usage(format!("no stage named `{stage}` in {}", p.file.display())))?;
+    let dag = Dag::build(p)?;
+    let store = Store::open_existing(&p.cache_dir);
+    let res = runner::resolve(p, &dag, &store, false);
+    match &res[i].state {
+        State::Fresh(m) => Ok((store, m.clone())),
+        State::Stale(why) => Err(usage(format!(
+            "stage `{stage}` is not up to date ({why}); run `pipe run --until {stage}` first"
+        ))),
+    }
+}
+
+fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Result<i32> {
+    let (store, m) = fresh_entry(p, stage)?;
+    let tables = store.load(&m)?;
+    if let Some(t) = table {
+        if !tables.contains_key(t) {
+            return Err(usage(format!(
+                "stage `{stage}` has no table `{t}` (tables: {})",
+                tables.keys().cloned().collect::<Vec<_>>().join(", ")
+            )));
+        }
+    }
+    println!(
+        "stage `{stage}` (kind `{}`, version {}), key {}\nentry {}",
+        m.kind,
+        m.version,
+        m.key,
+        store.entry_dir(&m.key).display()
+    );
+    for (name, batch) in &tables {
+        if table.is_some_and(|t| t != name) {
+            continue;
+        }
+        let file = format!("{name}.parquet");
+        let size = m.files.get(&file).map_or(0, |f| f.size);
+        println!(
+            "\ntable `{name}`: {} rows, {} ({file})",
+            batch.num_rows(),
+            runner::fmt_bytes(size)
+        );
+        for f in batch.schema().fields() {
+            println!(
+                "  {}: {}",
+                f.name(),
+                stages::schema::format_type(f.data_type())
+            );
+        }
+        let n = head.min(batch.num_rows());
+        if n == 0 {
+            continue;
+        }
+        let opts = FormatOptions::default();
+        let fmts = batch
+            .columns()
+            .iter()
+            .map(|c| ArrayFormatter::try_new(c.as_ref(), &opts))
+            .collect::<Result<Vec<_>, _>>()?;
+        let header: Vec<&str> = batch
+            .schema_ref()
+            .fields()
+            .iter()
+            .map(|f| f.name().as_str())
+            .collect();
+        let rows: Vec<Vec<String>> = (0..n)
+            .map(|r| {
+                fmts.iter()
+                    .map(|f| {
+                        let s = f.value(r).to_string();
+                        if s.chars().count() > 40 {
+                            format!("{}...", s.chars().take(37).collect::<String>())
+                        } else {
+                            s
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        println!();
+        print!("{}", runner::text_table(&header, &rows));
+    }
+    Ok(0)
+}
+
+fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
+    let (store, m) = fresh_entry(p, stage)?;
+    let tables = store.load(&m)?;
+    let s = &p.stages[p.index_of(stage).unwrap()];
+    std::fs::create_dir_all(to).with_context(|| format!("creating {}", to.display()))?;
+    let files = s
+        .kind
+        .export(&s.params, &tables, to)
+        .map_err(|e| anyhow!("exporting stage `{stage}`: {e}"))?;
+    if files.is_empty() {
+        println!(
+            "stage `{stage}` (kind `{}`) has no files to export",
+            s.kind.kind()
+        );
+    } else {
+        println!("wrote {} files under {}", files.len(), to.display());
+    }
+    Ok(0)
+}
+
+fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
+    let dag = Dag::build(p)?;
+    let store = Store::open(&p.cache_dir)?;
+    let _lock = crate::store::RunLock::acquire(store.root(), false)?;
+    let res = runner::resolve(p, &dag, &store, false);
+    let mut keep: BTreeSet<String> = res
+        .iter()
+        .filter(|r| matches!(r.state, State::Fresh(_)))
+        .filter_map(|r| r.key.clone())
+        .collect();
+    if keep_all_runs {
+        for rec in store.run_records().into_values() {
+            keep.extend(rec.history);
+            keep.insert(rec.key);
+        }
+    }
+    let (removed, bytes) = store.gc(&keep, dry_run)?;
+    println!(
+        "{} {} entries ({}), kept {}",
+        if dry_run { "would remove" } else { "removed" },
+        removed.len(),
+        runner::fmt_bytes(bytes),
+        store.keys().len()
+    );
+    Ok(0)
+}
+
+fn cmd_kinds(only: Option<&str>) -> Result<i32> {
+    let all = stages::registry();
+    let mut shown = 0;
+    for k in &all {
+        if only.is_some_and(|o| o != k.kind()) || (only.is_none() && k.kind().starts_with("test_"))
+        {
+            continue;
+        }
+        shown += 1;
+        println!(
+            "{} (version {}): {}",
+            k.kind(),
+            k.version(),
+            k.description()
+        );
+        for s in k.inputs() {
+            println!(
+                "  input  {}{}: {} [{}]",
+                s.name,
+                if s.optional { " (optional)" } else { "" },
+                s.doc,
+                s.tables.join(", ")
+            );
+        }
+        println!("  output {}", k.outputs().join(", "));
+        if let Some(obj) = k.default_params().as_object() {
+            for (name, v) in obj {
+                println!("  param  {name} = {v}");
+            }
+        }
+        println!();
+    }
+    if shown == 0 {
+        bail!(UsageError(format!(
+            "no stage kind `{}`",
+            only.unwrap_or("")
+        )));
+    }
+    Ok(0)
+}
+
+/// Whether an error is a usage/configuration error (exit code 2).
+pub fn is_usage_error(e: &anyhow::Error) -> bool {
+    e.chain()
+        .any(|c| c.is::<UsageError>() || c.is::<config::ConfigError>())
+}
+
+/// Used by tests and callers that want the corrupt/fresh state of one entry.
+pub fn entry_state(store: &Store, key: &str) -> &'static str {
+    match store.check(key, true) {
+        Entry::Missing => "missing",
+        Entry::Valid(_) => "valid",
+        Entry::Corrupt(_) => "corrupt",
+    }
+}
+
+/// Whether a run report contains a stage that actually ran.
+pub fn any_ran(rep: &runner::RunReport) -> bool {
+    rep.stages.iter().any(|r| r.outcome == Outcome::Ran)
+}
