@@ -156,7 +156,8 @@ impl ConfusionMatrix {
     }
 
     /// Mean IoU over the classes present in GT or prediction (the paper's mIoU); a class
-    /// predicted but absent from GT has IoU 0 and lowers it. `None` when no class is present.
+    /// predicted but absent from GT has IoU 0 and lowers it (predictions on void GT pixels do
+    /// not count: such a class stays absent). `None` when no class is present.
     pub fn miou(&self) -> Option<f64> {
         mean(self.table().iter().filter_map(|c| c.iou))
     }

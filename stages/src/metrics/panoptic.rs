@@ -25,7 +25,10 @@
 //! PQ, i.e. after small segments were relabelled sky; the project's mIoU is computed
 //! separately, on the raw semantic prediction ([`ConfusionMatrix`]).
 
-use std::collections::{HashMap, HashSet};
+use std::{
+    collections::{HashMap, HashSet},
+    fmt,
+};
 
 use super::{
     check_len, class_index, confusion::mean, instance_number, ConfusionMatrix, MetricError,
@@ -439,6 +442,55 @@ impl PanopticResult {
     /// The row of `class`, if evaluated.
     pub fn class(&self, class: u8) -> Option<&ClassPq> {
         self.per_class.iter().find(|c| c.class == class)
+    }
+}
+
+/// The per-class table, then the All / Things / Stuff averages and PQ-dagger, as fixed-width
+/// text (percentages).
+impl fmt::Display for PanopticResult {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let pct = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1}", 100.0 * v));
+        writeln!(
+            f,
+            "{:<22} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>7} {:>6}",
+            "class", "PQ %", "SQ %", "RQ %", "IoU %", "TP", "FP", "FN", "kind"
+        )?;
+        for c in &self.per_class {
+            let name = labels::by_id(c.class).map_or("?", |l| l.name);
+            writeln!(
+                f,
+                "{:<22} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>7} {:>6}",
+                format!("{name} ({})", c.class),
+                pct(c.pq),
+                pct(c.sq),
+                pct(c.rq),
+                pct(c.iou),
+                c.tp,
+                c.fp,
+                c.fn_,
+                if c.is_thing { "thing" } else { "stuff" }
+            )?;
+        }
+        for (name, s) in [
+            ("All", self.all),
+            ("Things", self.things),
+            ("Stuff", self.stuff),
+        ] {
+            writeln!(
+                f,
+                "{name:<7} PQ {} SQ {} RQ {} ({} classes)",
+                pct(s.map(|s| s.pq)),
+                pct(s.map(|s| s.sq)),
+                pct(s.map(|s| s.rq)),
+                s.map_or(0, |s| s.classes)
+            )?;
+        }
+        write!(
+            f,
+            "PQ-dagger {} ({} frames)",
+            pct(self.pq_dagger),
+            self.frames
+        )
     }
 }
 
