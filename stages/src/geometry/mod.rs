@@ -18,6 +18,7 @@ pub mod aabb;
 pub mod bvh;
 pub mod camera;
 pub mod cuboid;
+pub mod demo;
 pub mod ellipsoid;
 pub mod extruded;
 pub mod fields;
@@ -360,3 +361,6 @@ impl Primitive {
         }
     }
 }
+
+#[cfg(test)]
+mod tests;
