@@ -318,6 +318,26 @@ fn export_writes_the_stage_files() {
 }
 
 #[test]
+fn jobs_run_independent_stages_at_once() {
+    let ws = Workspace::new(
+        "stages:\n  s1:\n    uses: test_source\n    params: {sleep_ms: 800}\n  s2:\n    uses: test_source\n    params: {value: 9, sleep_ms: 800}\n  m:\n    uses: test_map\n    inputs: {src: s1, extra: s2}\n",
+    );
+    ws.run_ok(&["--jobs", "2"]);
+    assert_eq!(ws.numbers("m"), vec![11, 14, 17]);
+    // The two sources' stage bodies overlapped in time (from their manifests).
+    let span = |s: &str| {
+        let m: serde_json::Value = serde_json::from_slice(
+            &fs::read(ws.cache().join("objects").join(ws.stage_key(s)).join("manifest.json")).unwrap(),
+        )
+        .unwrap();
+        (m["started"].as_f64().unwrap(), m["finished"].as_f64().unwrap())
+    };
+    let (a0, a1) = span("s1");
+    let (b0, b1) = span("s2");
+    assert!(a0 < b1 && b0 < a1, "s1 {a0}..{a1} and s2 {b0}..{b1} did not overlap");
+}
+
+#[test]
 fn gc_removes_unreachable_entries() {
     let ws = Workspace::new(CHAIN);
     ws.run_ok(&[]);
