@@ -327,14 +327,26 @@ fn jobs_run_independent_stages_at_once() {
     // The two sources' stage bodies overlapped in time (from their manifests).
     let span = |s: &str| {
         let m: serde_json::Value = serde_json::from_slice(
-            &fs::read(ws.cache().join("objects").join(ws.stage_key(s)).join("manifest.json")).unwrap(),
+            &fs::read(
+                ws.cache()
+                    .join("objects")
+                    .join(ws.stage_key(s))
+                    .join("manifest.json"),
+            )
+            .unwrap(),
         )
         .unwrap();
-        (m["started"].as_f64().unwrap(), m["finished"].as_f64().unwrap())
+        (
+            m["started"].as_f64().unwrap(),
+            m["finished"].as_f64().unwrap(),
+        )
     };
     let (a0, a1) = span("s1");
     let (b0, b1) = span("s2");
-    assert!(a0 < b1 && b0 < a1, "s1 {a0}..{a1} and s2 {b0}..{b1} did not overlap");
+    assert!(
+        a0 < b1 && b0 < a1,
+        "s1 {a0}..{a1} and s2 {b0}..{b1} did not overlap"
+    );
 }
 
 #[test]

@@ -5,9 +5,11 @@
 //! another stage's files; the runner alone knows about hashing, caching, ordering and timing.
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
+pub mod evaluate;
 pub mod geometry;
 pub mod labels;
 pub mod metrics;
+pub mod pngio;
 pub mod schema;
 pub mod tables;
 pub mod testing;
@@ -197,6 +199,7 @@ impl<T: TypedStage> Stage for T {
 /// Every stage kind, by name. The runner knows stages only through this.
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
+    all.push(Box::new(evaluate::Evaluate));
     all.extend(testing::kinds());
     all
 }
