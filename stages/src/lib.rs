@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod labels;
 pub mod metrics;
 pub mod pngio;
+pub mod report;
 pub mod schema;
 pub mod tables;
 pub mod testing;
@@ -200,6 +201,7 @@ impl<T: TypedStage> Stage for T {
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
     all.push(Box::new(evaluate::Evaluate));
+    all.push(Box::new(report::Report));
     all.extend(testing::kinds());
     all
 }
