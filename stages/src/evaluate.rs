@@ -314,7 +314,7 @@ impl TypedStage for Evaluate {
                 )));
             }
             let gsem = map_u8(g, "gt_semantic", "labels")?;
-            let ginst = map_u16(gi, "gt_instance", "labels")?;
+            let ginst = map_u16(gi, "gt_instance", "instances")?;
             let ours = map_u8(m, "label_maps", "semantic")?;
             let ours_inst = map_u16(m, "label_maps", "instance")?;
             let fixed = map_u8(m, "label_maps", "fixed_semantic")?;

@@ -11,6 +11,7 @@ pub mod labels;
 pub mod metrics;
 pub mod pngio;
 pub mod report;
+pub mod sampling;
 pub mod schema;
 pub mod tables;
 pub mod testing;
