@@ -10,6 +10,7 @@ pub mod geometry;
 pub mod labels;
 pub mod metrics;
 pub mod pngio;
+pub mod rays;
 pub mod report;
 pub mod sampling;
 pub mod schema;
@@ -201,6 +202,7 @@ impl<T: TypedStage> Stage for T {
 /// Every stage kind, by name. The runner knows stages only through this.
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
+    all.push(Box::new(rays::Intersect));
     all.push(Box::new(evaluate::Evaluate));
     all.push(Box::new(report::Report));
     all.extend(testing::kinds());
