@@ -6,6 +6,7 @@
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
 pub mod labels;
+pub mod scene;
 pub mod schema;
 pub mod tables;
 pub mod testing;
