@@ -1,0 +1,267 @@
+//! Arrow codecs of the `cameras` and `primitives` tables (`data_schema/cameras.json`,
+//! `data_schema/primitives.json`). Transforms are stored as row-major 4x4 matrices; reading
+//! checks the bottom row and validates every primitive, naming the row and column on error.
+
+use arrow::{
+    datatypes::{Float64Type, UInt32Type, UInt8Type},
+    record_batch::RecordBatch,
+};
+use glam::{DAffine3, DMat3, DVec3};
+
+use super::{Camera, Primitive, Shape};
+use crate::{tables, Result, StageError};
+
+/// One row of the cameras table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraRow {
+    pub frame: u32,
+    /// 0 = left, 1 = right.
+    pub camera: u8,
+    pub eval: bool,
+    pub cam: Camera,
+}
+
+/// Row-major 4x4 of an affine transform.
+pub fn affine_to_row_major(m: &DAffine3) -> [f64; 16] {
+    let r = m.matrix3.transpose(); // columns of r = rows of m
+    let t = m.translation;
+    [
+        r.x_axis.x, r.x_axis.y, r.x_axis.z, t.x, //
+        r.y_axis.x, r.y_axis.y, r.y_axis.z, t.y, //
+        r.z_axis.x, r.z_axis.y, r.z_axis.z, t.z, //
+        0.0, 0.0, 0.0, 1.0,
+    ]
+}
+
+/// An affine transform from a row-major 4x4; errors if the bottom row is not `0 0 0 1`.
+pub fn affine_from_row_major(m: &[f64]) -> std::result::Result<DAffine3, String> {
+    if m.len() != 16 {
+        return Err(format!("expected 16 values, found {}", m.len()));
+    }
+    if m[12..16] != [0.0, 0.0, 0.0, 1.0] {
+        return Err(format!(
+            "bottom row must be 0 0 0 1, found {:?} (not an affine transform)",
+            &m[12..16]
+        ));
+    }
+    let rows = DMat3::from_cols(
+        DVec3::new(m[0], m[1], m[2]),
+        DVec3::new(m[4], m[5], m[6]),
+        DVec3::new(m[8], m[9], m[10]),
+    );
+    Ok(DAffine3 {
+        matrix3: rows.transpose(),
+        translation: DVec3::new(m[3], m[7], m[11]),
+    })
+}
+
+fn row_err(table: &str, row: usize, col: &str, msg: impl std::fmt::Display) -> StageError {
+    StageError::Input(format!("table `{table}` row {row} column `{col}`: {msg}"))
+}
+
+/// The primitives table (row index = `id`).
+pub fn primitives_to_table(prims: &[Primitive]) -> Result<RecordBatch> {
+    let mut transform = Vec::with_capacity(prims.len() * 16);
+    let (mut polygon, mut vertices, mut faces) = (vec![], vec![], vec![]);
+    for p in prims {
+        transform.extend(affine_to_row_major(&p.to_world));
+        let (mut pg, mut vs, mut fs) = (vec![], vec![], vec![]);
+        match &p.shape {
+            Shape::Cuboid | Shape::Ellipsoid => {}
+            Shape::Extruded { polygon } => pg = polygon.iter().flatten().copied().collect(),
+            Shape::Mesh { vertices, faces } => {
+                vs = vertices.iter().flat_map(|v| v.to_array()).collect();
+                fs = faces.iter().flatten().copied().collect();
+            }
+        }
+        polygon.push(pg);
+        vertices.push(vs);
+        faces.push(fs);
+    }
+    tables::build(
+        "primitives",
+        vec![
+            tables::prim::<UInt32Type>(0..prims.len() as u32),
+            tables::strings(prims.iter().map(|p| p.shape.kind())),
+            tables::prim::<UInt8Type>(prims.iter().map(|p| p.label)),
+            tables::prim::<UInt32Type>(prims.iter().map(|p| p.instance)),
+            tables::fixed_list::<Float64Type>(16, transform),
+            tables::list::<Float64Type>(polygon),
+            tables::list::<Float64Type>(vertices),
+            tables::list::<UInt32Type>(faces),
+        ],
+    )
+}
+
+/// Validated primitives from the primitives table; `id` must equal the row index.
+pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
+    const T: &str = "primitives";
+    let ids = tables::get_prim::<UInt32Type>(t, T, "id")?;
+    let kinds = tables::get_strings(t, T, "kind")?;
+    let labels = tables::get_prim::<UInt8Type>(t, T, "label")?;
+    let instances = tables::get_prim::<UInt32Type>(t, T, "instance")?;
+    let (transform, n) = tables::get_fixed_list::<Float64Type>(t, T, "transform")?;
+    if n != 16 {
+        return Err(row_err(
+            T,
+            0,
+            "transform",
+            format!("expected 16 values per row, found {n}"),
+        ));
+    }
+    let polygon = tables::get_list::<Float64Type>(t, T, "polygon")?;
+    let vertices = tables::get_list::<Float64Type>(t, T, "vertices")?;
+    let faces = tables::get_list::<UInt32Type>(t, T, "faces")?;
+    let mut out = Vec::with_capacity(t.num_rows());
+    for row in 0..t.num_rows() {
+        if ids[row] as usize != row {
+            return Err(row_err(
+                T,
+                row,
+                "id",
+                format!("id {} is not the row index", ids[row]),
+            ));
+        }
+        let m = affine_from_row_major(&transform[row * 16..row * 16 + 16])
+            .map_err(|e| row_err(T, row, "transform", e))?;
+        let (kind, col) = (kinds.value(row), "kind");
+        let shape = match kind {
+            "cuboid" => Shape::Cuboid,
+            "ellipsoid" => Shape::Ellipsoid,
+            "extruded" => {
+                let flat = polygon.row(row);
+                if flat.len() % 2 != 0 {
+                    return Err(row_err(T, row, "polygon", "odd number of coordinates"));
+                }
+                Shape::Extruded {
+                    polygon: flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
+                }
+            }
+            "mesh" => {
+                let (vs, fs) = (vertices.row(row), faces.row(row));
+                if vs.len() % 3 != 0 {
+                    return Err(row_err(T, row, "vertices", "length is not a multiple of 3"));
+                }
+                if fs.len() % 3 != 0 {
+                    return Err(row_err(T, row, "faces", "length is not a multiple of 3"));
+                }
+                Shape::Mesh {
+                    vertices: vs.chunks_exact(3).map(DVec3::from_slice).collect(),
+                    faces: fs.chunks_exact(3).map(|f| [f[0], f[1], f[2]]).collect(),
+                }
+            }
+            other => {
+                return Err(row_err(
+                    T,
+                    row,
+                    col,
+                    format!(
+                        "unknown kind `{other}` (expected cuboid, ellipsoid, extruded or mesh)"
+                    ),
+                ))
+            }
+        };
+        let bad_col = match &shape {
+            Shape::Cuboid | Shape::Ellipsoid => "transform",
+            Shape::Extruded { .. } => "polygon",
+            Shape::Mesh { .. } => "faces",
+        };
+        let p = Primitive::new(shape, m, labels[row], instances[row]).map_err(|e| {
+            let col = if e.to_string().contains("transform") {
+                "transform"
+            } else if matches!(e, super::GeometryError::NonFinite("mesh vertices")) {
+                "vertices"
+            } else {
+                bad_col
+            };
+            row_err(T, row, col, e)
+        })?;
+        out.push(p);
+    }
+    Ok(out)
+}
+
+/// The cameras table.
+pub fn cameras_to_table(rows: &[CameraRow]) -> Result<RecordBatch> {
+    let f = |g: fn(&CameraRow) -> f64| tables::prim::<Float64Type>(rows.iter().map(g));
+    tables::build(
+        "cameras",
+        vec![
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.frame)),
+            tables::prim::<UInt8Type>(rows.iter().map(|r| r.camera)),
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.cam.width)),
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.cam.height)),
+            f(|r| r.cam.fx),
+            f(|r| r.cam.fy),
+            f(|r| r.cam.cx),
+            f(|r| r.cam.cy),
+            tables::fixed_list::<Float64Type>(
+                16,
+                rows.iter()
+                    .flat_map(|r| affine_to_row_major(&r.cam.cam_to_world))
+                    .collect(),
+            ),
+            tables::bools(rows.iter().map(|r| r.eval)),
+        ],
+    )
+}
+
+/// Camera rows from the cameras table; checks positive sizes and focal lengths and finite
+/// values.
+pub fn cameras_from_table(t: &RecordBatch) -> Result<Vec<CameraRow>> {
+    const T: &str = "cameras";
+    let frame = tables::get_prim::<UInt32Type>(t, T, "frame")?;
+    let camera = tables::get_prim::<UInt8Type>(t, T, "camera")?;
+    let width = tables::get_prim::<UInt32Type>(t, T, "width")?;
+    let height = tables::get_prim::<UInt32Type>(t, T, "height")?;
+    let fx = tables::get_prim::<Float64Type>(t, T, "fx")?;
+    let fy = tables::get_prim::<Float64Type>(t, T, "fy")?;
+    let cx = tables::get_prim::<Float64Type>(t, T, "cx")?;
+    let cy = tables::get_prim::<Float64Type>(t, T, "cy")?;
+    let (pose, n) = tables::get_fixed_list::<Float64Type>(t, T, "cam_to_world")?;
+    if n != 16 {
+        return Err(row_err(
+            T,
+            0,
+            "cam_to_world",
+            format!("expected 16 values per row, found {n}"),
+        ));
+    }
+    let eval = tables::get_bools(t, T, "eval")?;
+    (0..t.num_rows())
+        .map(|row| {
+            if width[row] == 0 || height[row] == 0 {
+                return Err(row_err(T, row, "width", "image size must be positive"));
+            }
+            for (col, v) in [
+                ("fx", fx[row]),
+                ("fy", fy[row]),
+                ("cx", cx[row]),
+                ("cy", cy[row]),
+            ] {
+                if !v.is_finite() || (col.starts_with('f') && v <= 0.0) {
+                    return Err(row_err(T, row, col, format!("bad value {v}")));
+                }
+            }
+            let m = affine_from_row_major(&pose[row * 16..row * 16 + 16])
+                .map_err(|e| row_err(T, row, "cam_to_world", e))?;
+            if !m.is_finite() {
+                return Err(row_err(T, row, "cam_to_world", "non-finite value"));
+            }
+            Ok(CameraRow {
+                frame: frame[row],
+                camera: camera[row],
+                eval: eval[row],
+                cam: Camera {
+                    width: width[row],
+                    height: height[row],
+                    fx: fx[row],
+                    fy: fy[row],
+                    cx: cx[row],
+                    cy: cy[row],
+                    cam_to_world: m,
+                },
+            })
+        })
+        .collect()
+}
