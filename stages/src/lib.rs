@@ -198,6 +198,7 @@ impl<T: TypedStage> Stage for T {
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
     all.extend(testing::kinds());
+    all.push(Box::new(scene::SyntheticScene));
     all
 }
 

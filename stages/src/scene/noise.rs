@@ -63,21 +63,27 @@ const MISSABLE: &[(u8, f64)] = &[
 const BLOTCH_LABELS: &[u8] = &[SKY, BUILDING, VEGETATION, WALL];
 
 /// Segments smaller than this fraction of the image (times the noise level) are missed.
-const MISS_AREA_FRACTION: f64 = 0.0012;
+const MISS_AREA_FRACTION: f64 = 0.0006;
 /// Boundary displacement amplitude at noise 1, in pixels of a 176-pixel-wide image.
-const BOUNDARY_PX: f64 = 1.1;
+const BOUNDARY_PX: f64 = 0.5;
+/// The `noise` param is multiplied by this: calibrated so that noise 1 scores about 67 mIoU on
+/// the default scene (the paper's 2D input scored 67.2).
+const NOISE_CALIBRATION: f64 = 0.8;
+/// Scales every class's confusion rate (calibration of the default noise level).
+const CONFUSION_SCALE: f64 = 0.5;
 /// Standard deviation of [`fbm2`] values (measured).
 const FBM_SD: f64 = 0.13;
 /// Fraction of over-exposed area that turns into blotches at noise 1.
-const BLOTCH_FRACTION: f64 = 0.35;
+const BLOTCH_FRACTION: f64 = 0.25;
 
 /// The noisy labels of one image at noise level `noise` (0 = ground truth).
 pub fn pseudo_labels(inp: &NoiseInput, noise: f64, seed: u64, frame: u32) -> Vec<u8> {
     let (w, h) = (inp.width, inp.height);
+    let noise = noise * NOISE_CALIBRATION;
     if noise <= 0.0 {
         return inp.labels.to_vec();
     }
-    let key = |purpose: u64| hash(&[seed, 0x501_5E, frame as u64, purpose]);
+    let key = |purpose: u64| hash(&[seed, 0x5015E, frame as u64, purpose]);
     // Field coordinates in units of a 176-pixel-wide image, so the model is scale-free.
     let unit_px = w as f64 / 176.0;
 
@@ -110,7 +116,7 @@ pub fn pseudo_labels(inp: &NoiseInput, noise: f64, seed: u64, frame: u32) -> Vec
         };
         let (x, y) = ((i % w) as f64 / blob, (i / w) as f64 / blob);
         let r = fbm2(key(100 + *l as u64), x, y);
-        if quantile_above(r, rate * noise) {
+        if quantile_above(r, CONFUSION_SCALE * rate * noise) {
             let pick = value2(key(200 + *l as u64), x * 0.5, y * 0.5);
             *l = targets[((pick * targets.len() as f64) as usize).min(targets.len() - 1)];
         }
@@ -277,7 +283,7 @@ mod tests {
                 } else if y >= 5 && x < 25 {
                     l[i] = BUILDING;
                 }
-                if (14..16).contains(&y) && (30..32).contains(&x) {
+                if y == 14 && (30..33).contains(&x) {
                     l[i] = BOX;
                 }
             }
@@ -306,9 +312,9 @@ mod tests {
         let wrong = |p: &[u8]| p.iter().zip(&l).filter(|(a, b)| a != b).count();
         assert!(wrong(&a) > 0);
         assert!(wrong(&pseudo_labels(&inp, 3.0, 1, 0)) > wrong(&a));
-        // The 4-pixel box is below the missed-segment area at noise 3 (0.0012*3*800 = 2.9 px
-        // is less), but a noise of 5 misses it.
-        let p5 = pseudo_labels(&inp, 5.0, 1, 0);
+        // The 3-pixel box is smaller than the missed-segment area at the largest noise
+        // (0.0006 * 0.8 * 10 * 800 = 3.8 px).
+        let p5 = pseudo_labels(&inp, 10.0, 1, 0);
         assert!(!p5.contains(&BOX));
     }
 
