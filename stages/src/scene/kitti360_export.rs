@@ -124,7 +124,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         m[11] += info.origin.z;
         let _ = write!(poses, "{}", row.frame);
         for v in m {
-            let _ = write!(poses, " {v}");
+            let _ = write!(poses, " {}", num(v));
         }
         poses.push('\n');
     }
@@ -236,6 +236,11 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         )?;
     }
     Ok(files)
+}
+
+/// A number in Rust's shortest round-trip form, without a negative zero.
+fn num(v: f64) -> String {
+    (v + 0.0).to_string()
 }
 
 /// KITTI-360's coarse category of a label.
@@ -407,12 +412,8 @@ pub fn bboxes_xml(prims: &[Primitive], origin: DVec3, first: u32, last: u32) -> 
         m[11] += origin.z;
         let (v, f) = local_mesh(&p.shape);
         let _ = writeln!(s, "<object{}>", i + 1);
-        matrix(&mut s, "transform", 4, 4, "f", &m.map(|x| x.to_string()));
-        let vd: Vec<String> = v
-            .iter()
-            .flat_map(|q| [q.x, q.y, q.z])
-            .map(|x| x.to_string())
-            .collect();
+        matrix(&mut s, "transform", 4, 4, "f", &m.map(num));
+        let vd: Vec<String> = v.iter().flat_map(|q| [q.x, q.y, q.z]).map(num).collect();
         matrix(&mut s, "vertices", v.len(), 3, "f", &vd);
         let dt = if v.len() <= 256 { "u" } else { "i" };
         let fd: Vec<String> = f.iter().flatten().map(|x| x.to_string()).collect();

@@ -133,6 +133,25 @@ fn unproject(cam: &crate::geometry::Camera, x: u32, y: u32, z: f64) -> DVec3 {
 #[test]
 fn every_gt_pixel_lies_inside_a_primitive_of_its_class() {
     let (_, g) = default_scene();
+    assert!(gt_points_inside_primitives(g) > 10_000);
+}
+
+#[test]
+fn gt_lies_inside_primitives_for_other_seeds_and_windows() {
+    for (seed, first_frame) in [(1, 0), (2, 30), (3, 58)] {
+        let p = SceneParams {
+            seed,
+            first_frame,
+            frames: 4,
+            ..SceneParams::default()
+        };
+        gt_points_inside_primitives(&generate(&p, &NoProgress).unwrap());
+    }
+}
+
+/// Asserts that every non-sky GT pixel's 3D point is inside a primitive of its class; returns
+/// how many were checked.
+fn gt_points_inside_primitives(g: &Generated) -> usize {
     let prims = &g.layout.bounds;
     let bvh = Bvh::build(prims);
     let mut inside = Vec::new();
@@ -162,7 +181,7 @@ fn every_gt_pixel_lies_inside_a_primitive_of_its_class() {
             checked += 1;
         }
     }
-    assert!(checked > 10_000, "{checked}");
+    checked
 }
 
 fn overlap(a: &Primitive, b: &Primitive) -> bool {
@@ -512,4 +531,18 @@ fn export_default_scene() {
     )
     .unwrap();
     eprintln!("{} files in {dir}", files.len());
+}
+
+#[test]
+fn pseudo_label_quality_is_similar_for_other_seeds() {
+    for seed in 1..4 {
+        let p = SceneParams {
+            seed,
+            ..SceneParams::default()
+        };
+        let g = generate(&p, &NoProgress).unwrap();
+        let m = pseudo_miou(&p, &g, p.noise);
+        eprintln!("seed {seed}: pseudo-label mIoU {m:.1}");
+        assert!((50.0..=80.0).contains(&m), "seed {seed}: mIoU {m:.1}");
+    }
 }
