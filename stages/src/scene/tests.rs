@@ -507,13 +507,16 @@ fn local_meshes_are_closed_and_outward() {
     }
 }
 
-/// `SCENE_EXPORT_DIR=/tmp/x cargo test -p stages export_default_scene -- --ignored` writes the
+/// `SCENE_EXPORT_DIR=/tmp/x [SCENE_PARAMS='{..}'] cargo test -p stages export_default_scene -- --ignored` writes the
 /// default scene's export (KITTI-360 layout + previews) for a person to look at.
 #[test]
 #[ignore]
 fn export_default_scene() {
     let dir = std::env::var("SCENE_EXPORT_DIR").expect("set SCENE_EXPORT_DIR");
-    let p = SceneParams::default();
+    // Optional overrides, e.g. SCENE_PARAMS='{"scale": 1.0, "frames": 2}'.
+    let p: SceneParams = std::env::var("SCENE_PARAMS")
+        .map(|j| serde_json::from_str(&j).expect("SCENE_PARAMS is a params object"))
+        .unwrap_or_default();
     let t0 = Instant::now();
     let t = TypedStage::run(
         &SyntheticScene,
@@ -545,4 +548,25 @@ fn pseudo_label_quality_is_similar_for_other_seeds() {
         eprintln!("seed {seed}: pseudo-label mIoU {m:.1}");
         assert!((50.0..=80.0).contains(&m), "seed {seed}: mIoU {m:.1}");
     }
+}
+
+#[test]
+fn the_rig_is_a_rectified_stereo_pair_looking_down_the_street() {
+    let p = SceneParams::default();
+    let [l, r] = rig(&p, 30);
+    // Right camera: shifted by the baseline along the left camera's x axis (to the right,
+    // i.e. towards -y in the scene frame), same orientation.
+    let shift = l.cam_to_world.matrix3.transpose() * (r.centre() - l.centre());
+    assert!((shift - DVec3::new(p.baseline_m, 0.0, 0.0)).length() < 1e-12);
+    assert!(r.centre().y < l.centre().y);
+    assert_eq!(l.cam_to_world.matrix3, r.cam_to_world.matrix3);
+    // A point 10 m ahead: disparity fx * b / z, the horizon near the image's middle row.
+    let q = l.cam_to_world.transform_point3(DVec3::new(0.0, 0.0, 10.0));
+    let (ul, vl, z) = l.project(q).unwrap();
+    let (ur, vr, _) = r.project(q).unwrap();
+    assert!((ul - ur - l.fx * p.baseline_m / z).abs() < 1e-9);
+    assert!((vl - vr).abs() < 1e-9);
+    assert!(q.x > l.centre().x + 9.9, "looks along +x");
+    assert!((l.centre().z - p.camera_height_m).abs() < 1e-12);
+    assert_eq!((l.width, l.height), (176, 47));
 }
