@@ -390,7 +390,9 @@ fn matrix(out: &mut String, tag: &str, rows: usize, cols: usize, dt: &str, data:
     let _ = write!(out, "    <data>");
     for (i, d) in data.iter().enumerate() {
         if i > 0 {
-            out.push(if i % cols == 0 { '\n' } else { ' ' });
+            // Rows wrap as " \n": a space on both sides of every value, so parsers that split
+            // on single spaces (the devkit's parseOpencvMatrix) never glue two values together.
+            out.push_str(if i % cols == 0 { " \n" } else { " " });
         }
         out.push_str(d);
     }

@@ -461,6 +461,23 @@ fn export_writes_the_kitti360_layout() {
     ] {
         assert_eq!(xml.matches(tag).count(), n, "{tag}");
     }
+    // Every matrix has rows * cols values, also when split on single spaces like the devkit.
+    for block in xml.split("type_id=\"opencv-matrix\">").skip(1) {
+        let get = |tag: &str| {
+            let a = block.find(&format!("<{tag}>")).unwrap() + tag.len() + 2;
+            let b = block.find(&format!("</{tag}>")).unwrap();
+            block[a..b].to_string()
+        };
+        let (rows, cols): (usize, usize) =
+            (get("rows").parse().unwrap(), get("cols").parse().unwrap());
+        let values: Vec<f64> = get("data")
+            .split(' ')
+            .map(|d| d.replace('\n', ""))
+            .filter(|d| !d.is_empty())
+            .map(|d| d.parse().unwrap())
+            .collect();
+        assert_eq!(values.len(), rows * cols);
+    }
     // Instance PNG: 16-bit id*1000+instance.
     let inst = image::open(dir.join(format!(
         "data_2d_semantics/train/{seq}/image_00/instance/{f0}.png"
@@ -569,4 +586,38 @@ fn the_rig_is_a_rectified_stereo_pair_looking_down_the_street() {
     assert!(q.x > l.centre().x + 9.9, "looks along +x");
     assert!((l.centre().z - p.camera_height_m).abs() < 1e-12);
     assert_eq!((l.width, l.height), (176, 47));
+}
+
+#[test]
+fn exported_meshes_match_the_primitives() {
+    use super::kitti360_export::local_mesh;
+    use crate::geometry::Shape;
+    let (_, g) = default_scene();
+    let mut r = rng::Rng::new(9, rng::Purpose::Layout, &[]);
+    for (i, p) in g.layout.bounds.iter().enumerate() {
+        let (v, f) = local_mesh(&p.shape);
+        let m = Primitive::new(
+            Shape::Mesh {
+                vertices: v,
+                faces: f,
+            },
+            p.to_world,
+            p.label,
+            p.instance,
+        )
+        .unwrap_or_else(|e| panic!("primitive {i} ({}) exports a bad mesh: {e}", p.shape.kind()));
+        if matches!(p.shape, Shape::Ellipsoid) {
+            continue; // the tessellation is inscribed: slightly smaller
+        }
+        let bb = p.aabb();
+        for _ in 0..200 {
+            let q = bb.min + (bb.max - bb.min) * DVec3::new(r.f64(), r.f64(), r.f64());
+            assert_eq!(
+                m.contains(q),
+                p.contains(q),
+                "primitive {i} ({}) at {q}",
+                p.shape.kind()
+            );
+        }
+    }
 }
