@@ -13,6 +13,7 @@ pub mod pngio;
 pub mod rays;
 pub mod report;
 pub mod sampling;
+pub mod scene;
 pub mod schema;
 pub mod tables;
 pub mod testing;
@@ -202,6 +203,7 @@ impl<T: TypedStage> Stage for T {
 /// Every stage kind, by name. The runner knows stages only through this.
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
+    all.push(Box::new(scene::SyntheticScene));
     all.push(Box::new(rays::Intersect));
     all.push(Box::new(evaluate::Evaluate));
     all.push(Box::new(report::Report));

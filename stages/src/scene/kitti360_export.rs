@@ -1,0 +1,440 @@
+//! Writes a scene's tables in the KITTI-360 directory layout, so the KITTI-360 loader can be
+//! tested on synthetic data (the real data set may not be shipped):
+//!
+//! ```text
+//! data_2d_raw/<seq>/image_00|image_01/data_rect/%010d.png        RGB
+//! data_poses/<seq>/cam0_to_world.txt                              frame + row-major 4x4
+//! calibration/perspective.txt                                     P_rect_0x, R_rect_0x, S_rect_0x
+//! data_3d_bboxes/train/<seq>.xml                                  OpenCV FileStorage XML
+//! data_2d_semantics/train/<seq>/image_0x/semantic/%010d.png       8-bit label ids (GT)
+//! data_2d_semantics/train/<seq>/image_0x/instance/%010d.png       16-bit id*1000+instance (GT)
+//! pseudo_labels/<seq>/image_00/%010d.png                          8-bit label ids (noisy)
+//! ```
+//!
+//! Poses and primitives are written in world coordinates (scene frame + `scene_info.origin`).
+//! The principal point in `perspective.txt` follows KITTI/OpenCV (pixel centres at integer
+//! coordinates): `cx_file = cx - 0.5`, where the `cameras` table's `cx` has pixel (0, 0)
+//! spanning [0, 1). Numbers are written with Rust's shortest round-trip formatting.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use arrow::datatypes::{Float64Type, UInt16Type, UInt32Type, UInt8Type};
+use arrow::record_batch::RecordBatch;
+use glam::DVec3;
+
+use crate::geometry::{
+    cameras_from_table, io::affine_to_row_major, primitives_from_table, Primitive, Shape,
+};
+use crate::labels;
+use crate::{tables, Result, StageError, Tables};
+
+/// The scene-level facts of `scene_info`.
+pub struct SceneInfo {
+    pub name: String,
+    pub sequence: String,
+    pub origin: DVec3,
+    pub baseline: f64,
+}
+
+pub fn scene_info(t: &Tables) -> Result<SceneInfo> {
+    let s = table(t, "scene_info")?;
+    if s.num_rows() != 1 {
+        return Err(StageError::Input(format!(
+            "table `scene_info` has {} rows, expected 1",
+            s.num_rows()
+        )));
+    }
+    let (o, _) = tables::get_fixed_list::<Float64Type>(s, "scene_info", "origin")?;
+    Ok(SceneInfo {
+        name: tables::get_strings(s, "scene_info", "name")?
+            .value(0)
+            .to_string(),
+        sequence: tables::get_strings(s, "scene_info", "sequence")?
+            .value(0)
+            .to_string(),
+        origin: DVec3::new(o[0], o[1], o[2]),
+        baseline: tables::get_prim::<Float64Type>(s, "scene_info", "baseline")?[0],
+    })
+}
+
+pub(crate) fn table<'a>(t: &'a Tables, name: &str) -> Result<&'a RecordBatch> {
+    t.get(name)
+        .ok_or_else(|| StageError::Input(format!("the scene has no table `{name}`")))
+}
+
+/// Keys (frame, camera, width, height) of a per-image table.
+pub(crate) fn image_keys(b: &RecordBatch, name: &str) -> Result<Vec<(u32, u8, u32, u32)>> {
+    let f = tables::get_prim::<UInt32Type>(b, name, "frame")?;
+    let c = tables::get_prim::<UInt8Type>(b, name, "camera")?;
+    let w = tables::get_prim::<UInt32Type>(b, name, "width")?;
+    let h = tables::get_prim::<UInt32Type>(b, name, "height")?;
+    Ok((0..b.num_rows())
+        .map(|i| (f[i], c[i], w[i], h[i]))
+        .collect())
+}
+
+fn io_err(path: &Path, e: impl std::fmt::Display) -> StageError {
+    StageError::Failed(format!("writing {}: {e}", path.display()))
+}
+
+fn create_parent(path: &Path) -> Result<()> {
+    if let Some(d) = path.parent() {
+        std::fs::create_dir_all(d).map_err(|e| io_err(d, e))?;
+    }
+    Ok(())
+}
+
+fn write_text(path: PathBuf, text: &str, files: &mut Vec<PathBuf>) -> Result<()> {
+    create_parent(&path)?;
+    std::fs::write(&path, text).map_err(|e| io_err(&path, e))?;
+    files.push(path);
+    Ok(())
+}
+
+pub(crate) fn write_png(
+    path: PathBuf,
+    w: u32,
+    h: u32,
+    color: image::ExtendedColorType,
+    bytes: &[u8],
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
+    create_parent(&path)?;
+    image::save_buffer_with_format(&path, bytes, w, h, color, image::ImageFormat::Png)
+        .map_err(|e| io_err(&path, e))?;
+    files.push(path);
+    Ok(())
+}
+
+/// Writes the KITTI-360 layout into `dir`; returns the files written.
+pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+    let info = scene_info(t)?;
+    let seq = info.sequence.as_str();
+    let cams = cameras_from_table(table(t, "cameras")?)?;
+    let prims = primitives_from_table(table(t, "primitives")?)?;
+    let mut files = Vec::new();
+
+    // Poses of the left camera, world = scene + origin.
+    let mut poses = String::new();
+    for row in cams.iter().filter(|r| r.camera == 0) {
+        let mut m = affine_to_row_major(&row.cam.cam_to_world);
+        m[3] += info.origin.x;
+        m[7] += info.origin.y;
+        m[11] += info.origin.z;
+        let _ = write!(poses, "{}", row.frame);
+        for v in m {
+            let _ = write!(poses, " {}", num(v));
+        }
+        poses.push('\n');
+    }
+    write_text(
+        dir.join(format!("data_poses/{seq}/cam0_to_world.txt")),
+        &poses,
+        &mut files,
+    )?;
+
+    // Rectified intrinsics (both cameras share them; the right one is offset by the baseline).
+    let left = cams
+        .iter()
+        .find(|r| r.camera == 0)
+        .ok_or_else(|| StageError::Input("table `cameras` has no left camera".into()))?;
+    let c = &left.cam;
+    let (cx, cy) = (c.cx - 0.5, c.cy - 0.5);
+    let mut calib = String::new();
+    for (k, tx) in [(0, 0.0), (1, -c.fx * info.baseline)] {
+        let _ = writeln!(
+            calib,
+            "P_rect_0{k}: {} 0 {cx} {tx} 0 {} {cy} 0 0 0 1 0",
+            c.fx, c.fy
+        );
+        let _ = writeln!(calib, "R_rect_0{k}: 1 0 0 0 1 0 0 0 1");
+        let _ = writeln!(calib, "S_rect_0{k}: {} {}", c.width, c.height);
+    }
+    write_text(dir.join("calibration/perspective.txt"), &calib, &mut files)?;
+
+    // 3D bounding primitives.
+    let frames: Vec<u32> = cams.iter().map(|r| r.frame).collect();
+    let (first, last) = (
+        frames.iter().copied().min().unwrap_or(0),
+        frames.iter().copied().max().unwrap_or(0),
+    );
+    let xml = bboxes_xml(&prims, info.origin, first, last)?;
+    write_text(
+        dir.join(format!("data_3d_bboxes/train/{seq}.xml")),
+        &xml,
+        &mut files,
+    )?;
+
+    // Images.
+    let images = table(t, "images")?;
+    let rgb = tables::get_binary(images, "images", "rgb")?;
+    for (i, (f, cam, w, h)) in image_keys(images, "images")?.into_iter().enumerate() {
+        let path = dir.join(format!(
+            "data_2d_raw/{seq}/image_0{cam}/data_rect/{f:010}.png"
+        ));
+        write_png(
+            path,
+            w,
+            h,
+            image::ExtendedColorType::Rgb8,
+            rgb.value(i),
+            &mut files,
+        )?;
+    }
+
+    // Ground-truth labels.
+    let sem = table(t, "gt_semantic")?;
+    let labels_col = tables::get_list::<UInt8Type>(sem, "gt_semantic", "labels")?;
+    for (i, (f, cam, w, h)) in image_keys(sem, "gt_semantic")?.into_iter().enumerate() {
+        let path = dir.join(format!(
+            "data_2d_semantics/train/{seq}/image_0{cam}/semantic/{f:010}.png"
+        ));
+        write_png(
+            path,
+            w,
+            h,
+            image::ExtendedColorType::L8,
+            labels_col.row(i),
+            &mut files,
+        )?;
+    }
+    let inst = table(t, "gt_instance")?;
+    let inst_col = tables::get_list::<UInt16Type>(inst, "gt_instance", "instances")?;
+    for (i, (f, cam, w, h)) in image_keys(inst, "gt_instance")?.into_iter().enumerate() {
+        let path = dir.join(format!(
+            "data_2d_semantics/train/{seq}/image_0{cam}/instance/{f:010}.png"
+        ));
+        // PNG stores 16-bit samples big-endian; `save_buffer` takes native-endian u16 bytes.
+        let bytes: Vec<u8> = inst_col
+            .row(i)
+            .iter()
+            .flat_map(|v| v.to_ne_bytes())
+            .collect();
+        write_png(
+            path,
+            w,
+            h,
+            image::ExtendedColorType::L16,
+            &bytes,
+            &mut files,
+        )?;
+    }
+
+    // Pseudo labels.
+    let pl = table(t, "pseudo_labels")?;
+    let pl_col = tables::get_list::<UInt8Type>(pl, "pseudo_labels", "labels")?;
+    for (i, (f, cam, w, h)) in image_keys(pl, "pseudo_labels")?.into_iter().enumerate() {
+        let path = dir.join(format!("pseudo_labels/{seq}/image_0{cam}/{f:010}.png"));
+        write_png(
+            path,
+            w,
+            h,
+            image::ExtendedColorType::L8,
+            pl_col.row(i),
+            &mut files,
+        )?;
+    }
+    Ok(files)
+}
+
+/// A number in Rust's shortest round-trip form, without a negative zero.
+fn num(v: f64) -> String {
+    (v + 0.0).to_string()
+}
+
+/// KITTI-360's coarse category of a label.
+fn category(label: u8) -> &'static str {
+    use crate::labels::*;
+    match label {
+        ROAD | SIDEWALK | PARKING => "flat",
+        BUILDING | WALL | FENCE | GATE => "construction",
+        VEGETATION | TERRAIN => "nature",
+        CAR | CARAVAN | TRAILER => "vehicle",
+        SKY => "sky",
+        _ => "object",
+    }
+}
+
+/// A closed triangle mesh of a primitive in its local frame (vertices, faces), outward-wound.
+pub fn local_mesh(shape: &Shape) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+    match shape {
+        Shape::Cuboid => {
+            let v: Vec<DVec3> = (0..8)
+                .map(|k| {
+                    DVec3::new(
+                        if k & 1 == 0 { -0.5 } else { 0.5 },
+                        if k & 2 == 0 { -0.5 } else { 0.5 },
+                        if k & 4 == 0 { -0.5 } else { 0.5 },
+                    )
+                })
+                .collect();
+            let f = vec![
+                [0, 2, 3],
+                [0, 3, 1], // z-
+                [4, 5, 7],
+                [4, 7, 6], // z+
+                [0, 1, 5],
+                [0, 5, 4], // y-
+                [2, 6, 7],
+                [2, 7, 3], // y+
+                [0, 4, 6],
+                [0, 6, 2], // x-
+                [1, 3, 7],
+                [1, 7, 5], // x+
+            ];
+            (v, f)
+        }
+        Shape::Ellipsoid => {
+            let (seg, rings) = (16u32, 8u32);
+            let mut v = vec![DVec3::new(0.0, 0.0, 0.5)];
+            for r in 1..rings {
+                let th = std::f64::consts::PI * r as f64 / rings as f64;
+                for s in 0..seg {
+                    let ph = std::f64::consts::TAU * s as f64 / seg as f64;
+                    v.push(0.5 * DVec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()));
+                }
+            }
+            v.push(DVec3::new(0.0, 0.0, -0.5));
+            let south = v.len() as u32 - 1;
+            let at = |r: u32, s: u32| 1 + (r - 1) * seg + s % seg;
+            let mut f = Vec::new();
+            for s in 0..seg {
+                f.push([0, at(1, s), at(1, s + 1)]);
+                f.push([south, at(rings - 1, s + 1), at(rings - 1, s)]);
+            }
+            for r in 1..rings - 1 {
+                for s in 0..seg {
+                    let (a, b, c, d) = (at(r, s), at(r, s + 1), at(r + 1, s), at(r + 1, s + 1));
+                    f.push([a, c, d]);
+                    f.push([a, d, b]);
+                }
+            }
+            (v, f)
+        }
+        Shape::Extruded { polygon } => {
+            let mut poly = polygon.clone();
+            let area: f64 = (0..poly.len())
+                .map(|i| {
+                    let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
+                    a[0] * b[1] - b[0] * a[1]
+                })
+                .sum();
+            if area < 0.0 {
+                poly.reverse();
+            }
+            let n = poly.len() as u32;
+            let mut v: Vec<DVec3> = poly.iter().map(|q| DVec3::new(q[0], q[1], -0.5)).collect();
+            v.extend(poly.iter().map(|q| DVec3::new(q[0], q[1], 0.5)));
+            let mut f = Vec::new();
+            for [a, b, c] in ear_clip(&poly) {
+                f.push([a + n, b + n, c + n]); // top, counter-clockwise seen from +z
+                f.push([a, c, b]); // bottom
+            }
+            for i in 0..n {
+                let j = (i + 1) % n;
+                f.push([i, j, j + n]);
+                f.push([i, j + n, i + n]);
+            }
+            (v, f)
+        }
+        Shape::Mesh { vertices, faces } => (vertices.clone(), faces.clone()),
+    }
+}
+
+/// Triangulates a simple counter-clockwise polygon (ear clipping).
+fn ear_clip(poly: &[[f64; 2]]) -> Vec<[u32; 3]> {
+    let cross = |o: [f64; 2], a: [f64; 2], b: [f64; 2]| {
+        (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+    };
+    let mut idx: Vec<usize> = (0..poly.len()).collect();
+    let mut out = Vec::new();
+    while idx.len() > 3 {
+        let m = idx.len();
+        let ear = (0..m).find(|&k| {
+            let (a, b, c) = (
+                poly[idx[(k + m - 1) % m]],
+                poly[idx[k]],
+                poly[idx[(k + 1) % m]],
+            );
+            if cross(a, b, c) <= 0.0 {
+                return false;
+            }
+            idx.iter().all(|&q| {
+                let p = poly[q];
+                p == a
+                    || p == b
+                    || p == c
+                    || !(cross(a, b, p) >= 0.0 && cross(b, c, p) >= 0.0 && cross(c, a, p) >= 0.0)
+            })
+        });
+        // A valid simple polygon always has an ear; fall back to the first vertex regardless.
+        let k = ear.unwrap_or(0);
+        out.push([
+            idx[(k + m - 1) % m] as u32,
+            idx[k] as u32,
+            idx[(k + 1) % m] as u32,
+        ]);
+        idx.remove(k);
+    }
+    out.push([idx[0] as u32, idx[1] as u32, idx[2] as u32]);
+    out
+}
+
+fn matrix(out: &mut String, tag: &str, rows: usize, cols: usize, dt: &str, data: &[String]) {
+    let _ = writeln!(out, "  <{tag} type_id=\"opencv-matrix\">");
+    let _ = writeln!(
+        out,
+        "    <rows>{rows}</rows>\n    <cols>{cols}</cols>\n    <dt>{dt}</dt>"
+    );
+    let _ = write!(out, "    <data>");
+    for (i, d) in data.iter().enumerate() {
+        if i > 0 {
+            // Rows wrap as " \n": a space on both sides of every value, so parsers that split
+            // on single spaces (the devkit's parseOpencvMatrix) never glue two values together.
+            out.push_str(if i % cols == 0 { " \n" } else { " " });
+        }
+        out.push_str(d);
+    }
+    let _ = writeln!(out, "</data></{tag}>");
+}
+
+/// The `data_3d_bboxes` XML of the primitives (world frame = scene + `origin`).
+pub fn bboxes_xml(prims: &[Primitive], origin: DVec3, first: u32, last: u32) -> Result<String> {
+    let mut s = String::from("<?xml version=\"1.0\"?>\n<opencv_storage>\n");
+    for (i, p) in prims.iter().enumerate() {
+        let l = labels::by_id(p.label)
+            .filter(|l| l.kitti_id >= 0)
+            .ok_or_else(|| {
+                StageError::Input(format!("primitive {i}: label {} has no kittiId", p.label))
+            })?;
+        let mut m = affine_to_row_major(&p.to_world);
+        m[3] += origin.x;
+        m[7] += origin.y;
+        m[11] += origin.z;
+        let (v, f) = local_mesh(&p.shape);
+        let _ = writeln!(s, "<object{}>", i + 1);
+        matrix(&mut s, "transform", 4, 4, "f", &m.map(num));
+        let vd: Vec<String> = v.iter().flat_map(|q| [q.x, q.y, q.z]).map(num).collect();
+        matrix(&mut s, "vertices", v.len(), 3, "f", &vd);
+        let dt = if v.len() <= 256 { "u" } else { "i" };
+        let fd: Vec<String> = f.iter().flatten().map(|x| x.to_string()).collect();
+        matrix(&mut s, "faces", f.len(), 3, dt, &fd);
+        let _ = writeln!(s, "  <semanticId>{}</semanticId>", l.kitti_id);
+        let _ = writeln!(s, "  <instanceId>{}</instanceId>", p.instance);
+        let _ = writeln!(
+            s,
+            "  <start_frame>{first}</start_frame>\n  <end_frame>{last}</end_frame>"
+        );
+        let _ = writeln!(s, "  <timestamp>-1</timestamp>\n  <index>{i}</index>");
+        let _ = writeln!(
+            s,
+            "  <label>{}</label>\n  <category>{}</category>",
+            l.name,
+            category(p.label)
+        );
+        let _ = writeln!(s, "</object{}>", i + 1);
+    }
+    s.push_str("</opencv_storage>\n");
+    Ok(s)
+}

@@ -1,0 +1,289 @@
+//! Exact rendering of the true geometry: one ray per pixel through the pixel centre, first hit
+//! via the geometry BVH, procedural textures, sun + ambient shading with cast shadows, and a
+//! per-image exposure (with occasional glare) that over-exposes some regions.
+//!
+//! The same ray gives colour, ground-truth class, instance and z-depth, so all four agree.
+
+use crate::geometry::{Bvh, Camera, DVec3, Ray};
+use crate::labels::{is_paper_thing, INSTANCE_FACTOR, SKY};
+
+use super::layout::{Layout, Material, Pattern};
+use super::rng::{fbm2, hash, unit, value2, value3, Purpose, Rng};
+
+/// Direction towards the sun (scene frame, z up).
+pub fn sun() -> DVec3 {
+    DVec3::new(0.35, -0.55, 0.76).normalize()
+}
+
+/// Photometric settings of one image.
+#[derive(Debug, Clone, Copy)]
+pub struct Look {
+    /// Exposure gain (1 = nominal).
+    pub exposure: f64,
+    /// Optional glare: image point (u, v), radius in pixels, strength.
+    pub glare: Option<(f64, f64, f64, f64)>,
+    /// Seed of the sensor noise.
+    pub noise_key: u64,
+}
+
+impl Look {
+    /// The look of image (frame, camera): exposure varies per frame (both cameras alike, with a
+    /// small per-camera difference), glare now and then.
+    pub fn of(seed: u64, frame: u32, camera: u8, width: u32, height: u32) -> Self {
+        let mut f = Rng::new(seed, Purpose::Exposure, &[frame as u64]);
+        let base = (0.12 + 0.2 * f.normal()).exp().clamp(0.75, 1.7);
+        let mut c = Rng::new(seed, Purpose::Exposure, &[frame as u64, camera as u64]);
+        let exposure = base * (0.03 * c.normal()).exp();
+        let glare = c.chance(0.4).then(|| {
+            (
+                c.range(0.1, 0.9) * width as f64,
+                c.range(0.0, 0.45) * height as f64,
+                c.range(0.08, 0.18) * width as f64,
+                c.range(0.4, 0.8),
+            )
+        });
+        Look {
+            exposure,
+            glare,
+            noise_key: hash(&[seed, Purpose::Pixel as u64, frame as u64, camera as u64]),
+        }
+    }
+}
+
+/// Everything rendered for one image (row-major, `width * height`).
+pub struct Rendered {
+    pub rgb: Vec<u8>,
+    pub labels: Vec<u8>,
+    /// `label * 1000 + instance`.
+    pub instances: Vec<u16>,
+    /// z-depth, 0 for sky.
+    pub depth: Vec<f32>,
+    /// Any channel clipped.
+    pub overexposed: Vec<bool>,
+}
+
+/// Sky colour along a view direction.
+fn sky(dir: DVec3) -> [f64; 3] {
+    let h = dir.z.max(0.0).powf(0.6);
+    let horizon = [0.84, 0.88, 0.94];
+    let zenith = [0.38, 0.56, 0.84];
+    let glow = dir.dot(sun()).max(0.0).powi(48) * 0.9;
+    std::array::from_fn(|k| horizon[k] + (zenith[k] - horizon[k]) * h + glow)
+}
+
+fn scale(c: [f64; 3], s: f64) -> [f64; 3] {
+    c.map(|v| v * s)
+}
+
+fn mix(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
+    std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t)
+}
+
+/// The albedo of a material at world point `p` with outward normal `n`.
+pub fn albedo(m: &Material, p: DVec3, n: DVec3) -> [f64; 3] {
+    let c = m.color;
+    let up = n.z > 0.5;
+    let k = 0x7E47;
+    match m.pattern {
+        Pattern::Asphalt => {
+            let base = scale(c, 0.8 + 0.35 * fbm2(k, p.x * 2.0, p.y * 2.0));
+            let centre = p.y.abs() < 0.07 && p.x.rem_euclid(6.0) < 3.0;
+            let edge = (p.y.abs() - 3.8).abs() < 0.07;
+            if up && (centre || edge) {
+                [0.88, 0.88, 0.86]
+            } else {
+                base
+            }
+        }
+        Pattern::Paving => {
+            let (u, v) = (p.x / 0.25, p.y / 0.25);
+            let joint = u.fract().abs() < 0.12 || v.fract().abs() < 0.12;
+            let stone = 0.85 + 0.3 * unit(&[k, u.floor() as u64, v.floor() as u64]);
+            scale(c, if joint { 0.6 } else { stone })
+        }
+        Pattern::Slabs => {
+            if !up {
+                return [0.55, 0.55, 0.53]; // kerb face
+            }
+            let (u, v) = (p.x / 0.6, p.y / 0.6);
+            let joint = u.rem_euclid(1.0) < 0.05 || v.rem_euclid(1.0) < 0.05;
+            let slab = 0.9 + 0.15 * unit(&[k + 1, u.floor() as u64, v.floor() as u64]);
+            scale(
+                c,
+                if joint {
+                    0.7
+                } else {
+                    slab * (0.9 + 0.2 * value2(k, p.x * 3.0, p.y * 3.0))
+                },
+            )
+        }
+        Pattern::Grass => {
+            let t = fbm2(k + 2, p.x * 0.8, p.y * 0.8);
+            let fine = value2(k + 3, p.x * 9.0, p.y * 9.0);
+            let dry = [0.55, 0.5, 0.3];
+            scale(mix(c, dry, (t - 0.35).clamp(0.0, 0.6)), 0.8 + 0.35 * fine)
+        }
+        Pattern::Facade { x0, bay, floor } => {
+            if up {
+                return scale(c, 0.55); // roof
+            }
+            let along = if n.y.abs() > 0.5 { p.x - x0 } else { p.y };
+            let u = along.rem_euclid(bay) / bay;
+            let f = p.z / floor;
+            let v = f.rem_euclid(1.0);
+            let window = (0.25..0.75).contains(&u) && (0.3..0.78).contains(&v) && f > 0.2;
+            if window && n.y.abs() > 0.5 {
+                let w = unit(&[k + 4, (along / bay).floor() as u64, f.floor() as u64]);
+                [0.12 + 0.15 * w, 0.16 + 0.15 * w, 0.2 + 0.18 * w]
+            } else {
+                scale(
+                    c,
+                    0.88 + 0.18 * value3(k + 5, p.x * 1.5, p.y * 1.5, p.z * 1.5),
+                )
+            }
+        }
+        Pattern::Foliage => {
+            let t = value3(k + 6, p.x * 2.2, p.y * 2.2, p.z * 2.2);
+            let fine = value3(k + 7, p.x * 7.0, p.y * 7.0, p.z * 7.0);
+            scale(mix(c, [0.38, 0.5, 0.15], t * 0.6), 0.55 + 0.7 * fine)
+        }
+        Pattern::Bark => scale(
+            c,
+            0.75 + 0.4 * value3(k + 8, p.x * 6.0, p.y * 6.0, p.z * 1.2),
+        ),
+        Pattern::Paint => c,
+        Pattern::Glass => {
+            if up {
+                c
+            } else {
+                mix([0.1, 0.12, 0.15], c, 0.15)
+            }
+        }
+        Pattern::Tyre => c,
+        Pattern::Concrete => scale(
+            c,
+            0.88 + 0.2 * value3(k + 9, p.x * 2.0, p.y * 2.0, p.z * 2.0),
+        ),
+        Pattern::Brick => {
+            let row = (p.z / 0.075).floor();
+            let along = p.x + if row as i64 % 2 == 0 { 0.0 } else { 0.12 };
+            let mortar = (p.z / 0.075).fract() < 0.15 || (along / 0.24).rem_euclid(1.0) < 0.06;
+            if mortar {
+                [0.72, 0.7, 0.66]
+            } else {
+                scale(
+                    c,
+                    0.85 + 0.3 * unit(&[k + 10, (along / 0.24).floor() as u64, row as u64]),
+                )
+            }
+        }
+        Pattern::Slats => {
+            let along = if n.x.abs() > 0.5 { p.y } else { p.x };
+            let gap = (along / 0.12).rem_euclid(1.0) < 0.3;
+            scale(
+                c,
+                if gap {
+                    0.45
+                } else {
+                    0.9 + 0.2 * value2(k + 11, along * 20.0, p.z)
+                },
+            )
+        }
+        Pattern::Metal => scale(
+            c,
+            0.92 + 0.12 * value3(k + 12, p.x * 3.0, p.y * 3.0, p.z * 3.0),
+        ),
+    }
+}
+
+/// What a pixel ray sees.
+pub struct Sample {
+    pub label: u8,
+    pub instance: u16,
+    /// Distance along the ray (`None`: sky).
+    pub t: Option<f64>,
+    /// Linear colour before exposure.
+    pub radiance: [f64; 3],
+}
+
+/// Traces one ray against the true geometry.
+pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
+    let Some(hit) = bvh.first_hit(&layout.parts, ray, 0.0, 1.0e4) else {
+        return Sample {
+            label: SKY,
+            instance: SKY as u16 * INSTANCE_FACTOR as u16,
+            t: None,
+            radiance: sky(ray.dir),
+        };
+    };
+    let part = &layout.parts[hit.prim as usize];
+    let t = hit.t_in.max(0.0);
+    let p = ray.at(t);
+    let n = hit.normal_in;
+    let a = albedo(&layout.materials[hit.prim as usize], p, n);
+    let s = sun();
+    let lit = n.dot(s).max(0.0);
+    let shadow = lit > 0.0 && {
+        let sray = Ray {
+            origin: p + n * 1e-4,
+            dir: s,
+        };
+        bvh.first_hit(&layout.parts, &sray, 1e-3, 300.0).is_some()
+    };
+    let direct = if shadow { 0.0 } else { 0.75 * lit };
+    // Contact darkening at the foot of vertical surfaces.
+    let ao = if n.z.abs() < 0.5 {
+        1.0 - 0.25 * (-(p.z.max(0.0)) / 0.35).exp()
+    } else {
+        1.0
+    };
+    let shade = (0.45 + 0.25 * n.z.max(0.0) + direct) * ao;
+    let instance = if is_paper_thing(part.label) {
+        part.instance
+    } else {
+        0
+    };
+    Sample {
+        label: part.label,
+        instance: (part.label as u32 * INSTANCE_FACTOR + instance) as u16,
+        t: Some(t),
+        radiance: scale(a, shade),
+    }
+}
+
+/// Renders one image.
+pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look) -> Rendered {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut out = Rendered {
+        rgb: vec![0; w * h * 3],
+        labels: vec![0; w * h],
+        instances: vec![0; w * h],
+        depth: vec![0.0; w * h],
+        overexposed: vec![false; w * h],
+    };
+    let mut rng = Rng::new(look.noise_key, Purpose::Pixel, &[]);
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let ray = cam.pixel_ray(x as u32, y as u32);
+            let s = trace(layout, bvh, &ray);
+            out.labels[i] = s.label;
+            out.instances[i] = s.instance;
+            if let Some(t) = s.t {
+                out.depth[i] = cam.z_depth(&ray, t) as f32;
+            }
+            let glare = look.glare.map_or(0.0, |(gu, gv, r, k)| {
+                let d2 = (x as f64 + 0.5 - gu).powi(2) + (y as f64 + 0.5 - gv).powi(2);
+                k * (-d2 / (r * r)).exp()
+            });
+            let mut clipped = false;
+            for c in 0..3 {
+                let v = s.radiance[c] * look.exposure + glare + 0.006 * rng.normal();
+                clipped |= v >= 1.0;
+                out.rgb[i * 3 + c] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+            }
+            out.overexposed[i] = clipped;
+        }
+    }
+    out
+}
