@@ -162,6 +162,29 @@ fn view<'a>(c: &CameraRow, labels: &'a [u8], depth: &'a [f32]) -> LabelledView<'
     }
 }
 
+/// Columns of the `eval_gt` table.
+#[derive(Default)]
+struct GtRows {
+    frame: Vec<u32>,
+    camera: Vec<u8>,
+    width: Vec<u32>,
+    height: Vec<u32>,
+    semantic: Vec<Vec<u8>>,
+    instance: Vec<Vec<u16>>,
+}
+
+/// Columns of the `class_iou` table.
+#[derive(Default)]
+struct ClassRows {
+    method: Vec<String>,
+    label: Vec<u8>,
+    name: Vec<String>,
+    iou: Vec<Option<f64>>,
+    tp: Vec<u64>,
+    fp: Vec<u64>,
+    fn_: Vec<u64>,
+}
+
 /// Accumulators of one method.
 struct MethodSums {
     confusion: ConfusionMatrix,
@@ -291,14 +314,7 @@ impl TypedStage for Evaluate {
         // Label maps per method per evaluated image, kept for multi-view consistency.
         let mut labels_of: BTreeMap<(&str, u32, u8), Vec<u8>> = BTreeMap::new();
         let mut pseudo_frames = 0;
-        let mut gt_rows: (
-            Vec<u32>,
-            Vec<u8>,
-            Vec<u32>,
-            Vec<u32>,
-            Vec<Vec<u8>>,
-            Vec<Vec<u16>>,
-        ) = Default::default();
+        let mut gt_rows = GtRows::default();
         for (n, c) in eval.iter().enumerate() {
             progress.update(n as u64, eval.len() as u64, "evaluating");
             let key = (c.frame, c.camera);
@@ -320,12 +336,12 @@ impl TypedStage for Evaluate {
             let fixed = map_u8(m, "label_maps", "fixed_semantic")?;
             let depth = map_f32(m, "label_maps", "depth")?;
             let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, &prims, &bvh);
-            gt_rows.0.push(c.frame);
-            gt_rows.1.push(c.camera);
-            gt_rows.2.push(g.width as u32);
-            gt_rows.3.push(g.height as u32);
-            gt_rows.4.push(gsem.to_vec());
-            gt_rows.5.push(ginst.to_vec());
+            gt_rows.frame.push(c.frame);
+            gt_rows.camera.push(c.camera);
+            gt_rows.width.push(g.width as u32);
+            gt_rows.height.push(g.height as u32);
+            gt_rows.semantic.push(gsem.to_vec());
+            gt_rows.instance.push(ginst.to_vec());
 
             let s = sums.get_mut("panoptic_nerf").unwrap();
             s.confusion.add(gsem, ours)?;
@@ -402,15 +418,7 @@ impl TypedStage for Evaluate {
             metric_col.push(k.to_string());
             values.push(v.filter(|x| x.is_finite()));
         };
-        let mut ciou: (
-            Vec<String>,
-            Vec<u8>,
-            Vec<String>,
-            Vec<Option<f64>>,
-            Vec<u64>,
-            Vec<u64>,
-            Vec<u64>,
-        ) = Default::default();
+        let mut ciou = ClassRows::default();
         for &method in METHODS {
             let s = &sums[method];
             let frames = if method == "pseudo_labels" {
@@ -463,13 +471,13 @@ impl TypedStage for Evaluate {
         let class_iou = tables::build(
             "class_iou",
             vec![
-                tables::strings(&ciou.0),
-                tables::prim::<UInt8Type>(ciou.1),
-                tables::strings(&ciou.2),
-                Arc::new(Float64Array::from(ciou.3)) as ArrayRef,
-                tables::prim::<UInt64Type>(ciou.4),
-                tables::prim::<UInt64Type>(ciou.5),
-                tables::prim::<UInt64Type>(ciou.6),
+                tables::strings(&ciou.method),
+                tables::prim::<UInt8Type>(ciou.label),
+                tables::strings(&ciou.name),
+                Arc::new(Float64Array::from(ciou.iou)) as ArrayRef,
+                tables::prim::<UInt64Type>(ciou.tp),
+                tables::prim::<UInt64Type>(ciou.fp),
+                tables::prim::<UInt64Type>(ciou.fn_),
             ],
         )?;
         let info = inputs.table("scene", "scene_info")?;
@@ -480,13 +488,13 @@ impl TypedStage for Evaluate {
         let eval_gt = tables::build(
             "eval_gt",
             vec![
-                tables::strings(vec![sequence.value(0); gt_rows.0.len()]),
-                tables::prim::<UInt32Type>(gt_rows.0),
-                tables::prim::<UInt8Type>(gt_rows.1),
-                tables::prim::<UInt32Type>(gt_rows.2),
-                tables::prim::<UInt32Type>(gt_rows.3),
-                tables::list::<UInt8Type>(gt_rows.4),
-                tables::list::<UInt16Type>(gt_rows.5),
+                tables::strings(vec![sequence.value(0); gt_rows.frame.len()]),
+                tables::prim::<UInt32Type>(gt_rows.frame),
+                tables::prim::<UInt8Type>(gt_rows.camera),
+                tables::prim::<UInt32Type>(gt_rows.width),
+                tables::prim::<UInt32Type>(gt_rows.height),
+                tables::list::<UInt8Type>(gt_rows.semantic),
+                tables::list::<UInt16Type>(gt_rows.instance),
             ],
         )?;
         Ok(Tables::from([

@@ -202,11 +202,12 @@ impl<T: TypedStage> Stage for T {
 
 /// Every stage kind, by name. The runner knows stages only through this.
 pub fn registry() -> Vec<Box<dyn Stage>> {
-    let mut all: Vec<Box<dyn Stage>> = Vec::new();
-    all.push(Box::new(scene::SyntheticScene));
-    all.push(Box::new(rays::Intersect));
-    all.push(Box::new(evaluate::Evaluate));
-    all.push(Box::new(report::Report));
+    let mut all: Vec<Box<dyn Stage>> = vec![
+        Box::new(scene::SyntheticScene),
+        Box::new(rays::Intersect),
+        Box::new(evaluate::Evaluate),
+        Box::new(report::Report),
+    ];
     all.extend(testing::kinds());
     all
 }

@@ -349,7 +349,7 @@ impl TypedStage for Report {
         if p.zoom == 0 || p.zoom > 8 {
             return Err(StageError::Params("`zoom` must be 1..=8".into()));
         }
-        if !(p.depth_range > 0.0) {
+        if p.depth_range.is_nan() || p.depth_range <= 0.0 {
             return Err(StageError::Params("`depth_range` must be positive".into()));
         }
         Ok(())
@@ -425,9 +425,9 @@ impl TypedStage for Report {
         let cl = tables::get_prim::<UInt8Type>(class_t, "class_iou", "label")?;
         let ci = f64_col(class_t, "class_iou", "iou")?;
         let mut per_class: BTreeMap<(u8, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
-        for i in 0..class_t.num_rows() {
+        for (i, &label) in cl.iter().enumerate() {
             per_class
-                .entry((cl[i], cn.value(i).to_string()))
+                .entry((label, cn.value(i).to_string()))
                 .or_default()
                 .insert(cm.value(i).into(), (!ci.is_null(i)).then(|| ci.value(i)));
         }

@@ -486,8 +486,7 @@ pub fn place_samples(
                     ns += 1;
                 }
             }
-            if ns > 0 {
-                let base = p.samples / ns;
+            if let Some(base) = p.samples.checked_div(ns) {
                 let extra = p.samples % ns;
                 for (i, &(t0, t1)) in segs[..ns].iter().enumerate() {
                     put(t0, t1, base + usize::from(i < extra), &mut jitter);

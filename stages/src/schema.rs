@@ -169,7 +169,7 @@ mod tests {
 
     #[test]
     fn every_schema_file_parses_and_names_itself() {
-        assert!(SCHEMA_FILES.len() > 0);
+        assert!(!SCHEMA_FILES.is_empty());
         for (name, text) in SCHEMA_FILES {
             let (file, schema) = schema_from_json(text).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_eq!(
