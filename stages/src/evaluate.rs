@@ -450,14 +450,14 @@ impl TypedStage for Evaluate {
             push(method, "depth_rmse", d.and_then(|d| d.rmse));
             push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
             for row in s.confusion.table() {
-                ciou.0.push(method.to_string());
-                ciou.1.push(row.class);
-                ciou.2
+                ciou.method.push(method.to_string());
+                ciou.label.push(row.class);
+                ciou.name
                     .push(labels::by_id(row.class).map_or("?", |l| l.name).to_string());
-                ciou.3.push(row.iou);
-                ciou.4.push(row.tp);
-                ciou.5.push(row.fp);
-                ciou.6.push(row.fn_);
+                ciou.iou.push(row.iou);
+                ciou.tp.push(row.tp);
+                ciou.fp.push(row.fp);
+                ciou.fn_.push(row.fn_);
             }
         }
         let metrics = tables::build(
