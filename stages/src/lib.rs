@@ -5,6 +5,7 @@
 //! another stage's files; the runner alone knows about hashing, caching, ordering and timing.
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
+pub mod compose;
 pub mod evaluate;
 pub mod geometry;
 pub mod labels;
