@@ -7,6 +7,7 @@
 
 pub mod geometry;
 pub mod labels;
+pub mod rays;
 pub mod scene;
 pub mod schema;
 pub mod tables;
@@ -198,6 +199,7 @@ impl<T: TypedStage> Stage for T {
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = Vec::new();
     all.extend(testing::kinds());
+    all.push(Box::new(rays::Intersect));
     all.push(Box::new(scene::SyntheticScene));
     all
 }
