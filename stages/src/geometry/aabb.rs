@@ -84,10 +84,11 @@ impl Aabb {
         DVec3::ONE / (dir + DVec3::ZERO)
     }
 
-    /// Slab test: the overlap of the ray (given `inv_dir` from [`Aabb::inv_dir`]) with
-    /// the box, clipped to `[t_min, t_max]`; `None` if empty. The NaN of `0 * inf` (origin on a
-    /// slab plane, ray parallel to it) is read as "inside that slab": boundaries are inclusive,
-    /// as the primitives' are.
+    /// Slab test: the overlap of the ray (given `inv_dir` from [`Aabb::inv_dir`]) with the
+    /// box, clipped to `[t_min, t_max]`; `None` if empty. Boundaries are inclusive, as the
+    /// primitives' are. A ray parallel to a slab and starting exactly on one of its planes gives
+    /// `0 * inf = NaN`, which fails both comparisons below and so (correctly) adds no
+    /// constraint; the comparison form also compiles to plain `maxsd`/`minsd`.
     #[inline]
     pub fn ray_overlap(
         &self,
@@ -96,20 +97,52 @@ impl Aabb {
         t_min: f64,
         t_max: f64,
     ) -> Option<(f64, f64)> {
-        let t1 = (self.min - origin) * inv_dir;
-        let t2 = (self.max - origin) * inv_dir;
         let mut lo = t_min;
         let mut hi = t_max;
         for k in 0..3 {
-            let a = if t1[k].is_nan() {
-                f64::NEG_INFINITY
+            let (a, b) = if inv_dir[k] >= 0.0 {
+                (self.min[k], self.max[k])
             } else {
-                t1[k]
+                (self.max[k], self.min[k])
             };
-            let b = if t2[k].is_nan() { f64::INFINITY } else { t2[k] };
-            lo = lo.max(a.min(b));
-            hi = hi.min(a.max(b));
+            let near = (a - origin[k]) * inv_dir[k];
+            let far = (b - origin[k]) * inv_dir[k];
+            if near > lo {
+                lo = near;
+            }
+            if far < hi {
+                hi = far;
+            }
         }
         (lo <= hi).then_some((lo, hi))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slab_test_handles_parallel_rays_on_planes() {
+        let b = Aabb::new(DVec3::ZERO, DVec3::ONE);
+        let inv = |d: DVec3| Aabb::inv_dir(d);
+        // Along x, on the y = 0 and z = 1 planes (boundary: inside).
+        let o = DVec3::new(-1.0, 0.0, 1.0);
+        assert_eq!(b.ray_overlap(o, inv(DVec3::X), 0.0, 10.0), Some((1.0, 2.0)));
+        assert_eq!(
+            b.ray_overlap(o, inv(DVec3::new(1.0, -0.0, 0.0)), 0.0, 10.0),
+            Some((1.0, 2.0))
+        );
+        // Parallel, just outside.
+        let o = DVec3::new(-1.0, -1e-12, 0.5);
+        assert_eq!(b.ray_overlap(o, inv(DVec3::X), 0.0, 10.0), None);
+        // Backwards direction, clipped range.
+        let o = DVec3::new(3.0, 0.5, 0.5);
+        assert_eq!(
+            b.ray_overlap(o, inv(-DVec3::X), 0.0, 10.0),
+            Some((2.0, 3.0))
+        );
+        assert_eq!(b.ray_overlap(o, inv(-DVec3::X), 0.0, 1.5), None);
+        assert_eq!(Aabb::EMPTY.ray_overlap(o, inv(-DVec3::X), 0.0, 10.0), None);
     }
 }

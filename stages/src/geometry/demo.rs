@@ -348,3 +348,102 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
     };
     (prims, cam)
 }
+
+/// A long synthetic street of `n` primitives of every kind (road slabs, buildings as cuboids,
+/// L-shaped extrusions and non-convex meshes, cars, tree crowns, clutter meshes) over
+/// x in [0, 400] m, and a camera at its start looking down +x with a 90 degree field of view.
+/// Used by the `intersect` benchmark.
+pub fn city_scene(n: usize, width: u32, height: u32, seed: u64) -> (Vec<Primitive>, Camera) {
+    use labels::*;
+    let mut rng = Rng::new(seed);
+    let mut prims = Vec::with_capacity(n);
+    let side = |rng: &mut Rng| if rng.below(2) == 0 { -1.0 } else { 1.0 };
+    for i in 0..n {
+        let x = rng.range(0.0, 400.0);
+        let yaw = DQuat::from_rotation_z(rng.range(-0.1, 0.1));
+        let (shape, scale, t, label, inst) = match rng.below(10) {
+            0 => (
+                Shape::Cuboid,
+                DVec3::new(20.0, 8.0, 0.2),
+                DVec3::new(x, 0.0, -0.1),
+                ROAD,
+                0,
+            ),
+            1..=3 => {
+                let (l, w, h) = (
+                    rng.range(8.0, 20.0),
+                    rng.range(8.0, 15.0),
+                    rng.range(6.0, 25.0),
+                );
+                let shape = match rng.below(3) {
+                    0 => Shape::Cuboid,
+                    1 => Shape::Extruded {
+                        polygon: vec![
+                            [-0.5, -0.5],
+                            [0.5, -0.5],
+                            [0.5, -0.1],
+                            [-0.1, -0.1],
+                            [-0.1, 0.5],
+                            [-0.5, 0.5],
+                        ],
+                    },
+                    _ => star_mesh(2, 6, || rng.range(0.35, 0.5)),
+                };
+                let y = side(&mut rng) * rng.range(12.0, 20.0);
+                (
+                    shape,
+                    DVec3::new(l, w, h),
+                    DVec3::new(x, y, h / 2.0),
+                    BUILDING,
+                    i as u32 % 999 + 1,
+                )
+            }
+            4..=6 => {
+                let y = side(&mut rng) * rng.range(2.0, 3.5);
+                (
+                    Shape::Cuboid,
+                    DVec3::new(4.3, 1.8, 1.5),
+                    DVec3::new(x, y, 0.75),
+                    CAR,
+                    i as u32 % 999 + 1,
+                )
+            }
+            7 | 8 => {
+                let y = side(&mut rng) * rng.range(5.0, 7.0);
+                (
+                    Shape::Ellipsoid,
+                    DVec3::new(3.5, 3.5, 4.0),
+                    DVec3::new(x, y, 4.5),
+                    VEGETATION,
+                    0,
+                )
+            }
+            _ => {
+                let y = side(&mut rng) * rng.range(4.5, 7.0);
+                let s = rng.range(0.5, 2.0);
+                let shape = star_mesh(1 + rng.below(2), 4 + rng.below(4), || rng.range(0.3, 0.5));
+                (
+                    shape,
+                    DVec3::splat(s),
+                    DVec3::new(x, y, s / 2.0),
+                    BOX,
+                    i as u32 % 999 + 1,
+                )
+            }
+        };
+        let m = DAffine3::from_scale_rotation_translation(scale, yaw, t);
+        prims.push(Primitive::new(shape, m, label, inst).expect("city primitives are valid"));
+    }
+    let r = glam::DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X);
+    let f = width as f64 * 0.5;
+    let cam = Camera {
+        width,
+        height,
+        fx: f,
+        fy: f,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        cam_to_world: DAffine3::from_mat3_translation(r, DVec3::new(-5.0, 0.0, 1.6)),
+    };
+    (prims, cam)
+}

@@ -40,6 +40,8 @@ pub struct Mesh {
     faces: Vec<[u32; 3]>,
     tris: Vec<Tri>,
     bounds: Aabb,
+    /// `bounds` padded by a hair, for the ray's early-out test (the triangle test has a tolerance).
+    ray_bounds: Aabb,
     /// Crossings closer than this in `t * |d|` are one crossing.
     merge_eps: f64,
 }
@@ -130,6 +132,10 @@ impl Mesh {
             faces,
             tris,
             bounds,
+            ray_bounds: Aabb::new(
+                bounds.min - DVec3::splat(1e-7 * diag),
+                bounds.max + DVec3::splat(1e-7 * diag),
+            ),
             merge_eps: 1e-9 * diag,
         })
     }
@@ -162,6 +168,13 @@ impl Mesh {
 
     /// Calls `emit` with every interval of the whole line `o + t d` inside the mesh, in order.
     pub(crate) fn intersect(&self, o: DVec3, d: DVec3, emit: &mut impl FnMut(LocalInterval)) {
+        if self
+            .ray_bounds
+            .ray_overlap(o, Aabb::inv_dir(d), f64::NEG_INFINITY, f64::INFINITY)
+            .is_none()
+        {
+            return; // misses the local bounds: no triangle can be hit
+        }
         let dl = d.length();
         CROSSINGS.with(|c| {
             let mut c = c.borrow_mut();

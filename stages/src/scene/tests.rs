@@ -621,3 +621,18 @@ fn exported_meshes_match_the_primitives() {
         }
     }
 }
+
+#[test]
+fn the_intersect_stage_accepts_the_scene() {
+    let p = SceneParams {
+        frames: 2,
+        ..SceneParams::default()
+    };
+    let t = to_tables(&p, &generate(&p, &NoProgress).unwrap()).unwrap();
+    let kind = crate::find("intersect").expect("intersect kind registered");
+    let inputs = crate::Inputs::new([("scene".to_string(), &t)].into_iter().collect());
+    let out = kind
+        .run(&kind.default_params(), &inputs, &NoProgress)
+        .unwrap();
+    assert!(!out.is_empty());
+}

@@ -20,7 +20,12 @@ pub(super) fn build(prims: &[Primitive]) -> Bvh {
         });
         split(&boxes, &mut order, &mut nodes, 0, 0, prims.len(), 1);
     }
-    Bvh { nodes, order }
+    let boxes = order.iter().map(|&i| boxes[i as usize]).collect();
+    Bvh {
+        nodes,
+        order,
+        boxes,
+    }
 }
 
 fn split(

@@ -34,6 +34,9 @@ pub struct Bvh {
     nodes: Vec<Node>,
     /// Primitive indices, grouped by leaf.
     order: Vec<u32>,
+    /// `boxes[k]` = bounds of primitive `order[k]`: leaves test these (contiguous, cheap)
+    /// before calling the exact primitive test.
+    boxes: Vec<Aabb>,
 }
 
 impl Bvh {

@@ -65,7 +65,14 @@ impl Bvh {
                     sp += 2;
                     continue;
                 }
-                for &pi in &self.order[node.first as usize..(node.first + node.count) as usize] {
+                for k in node.first as usize..(node.first + node.count) as usize {
+                    if self.boxes[k]
+                        .ray_overlap(ray.origin, inv, t_min, t_max)
+                        .is_none()
+                    {
+                        continue;
+                    }
+                    let pi = self.order[k];
                     s.clear();
                     prims[pi as usize].intersect(ray, &mut s);
                     out.extend(s.iter().filter_map(|iv| clip(iv, pi, t_min, t_max)));
@@ -135,7 +142,15 @@ impl Bvh {
                     }
                     continue;
                 }
-                for &pi in &self.order[node.first as usize..(node.first + node.count) as usize] {
+                for k in node.first as usize..(node.first + node.count) as usize {
+                    let limit = best.map_or(t_max, |b| b.t_in);
+                    if self.boxes[k]
+                        .ray_overlap(ray.origin, inv, t_min, limit)
+                        .is_none()
+                    {
+                        continue;
+                    }
+                    let pi = self.order[k];
                     s.clear();
                     prims[pi as usize].intersect(ray, &mut s);
                     for iv in s.iter() {
