@@ -65,7 +65,13 @@ fn softmax_into(logits: &[f32], out: &mut [f32]) {
 fn argmax(v: &[f32]) -> (usize, f32) {
     v.iter()
         .enumerate()
-        .fold((0, f32::NEG_INFINITY), |(bi, bv), (i, &x)| if x > bv { (i, x) } else { (bi, bv) })
+        .fold((0, f32::NEG_INFINITY), |(bi, bv), (i, &x)| {
+            if x > bv {
+                (i, x)
+            } else {
+                (bi, bv)
+            }
+        })
 }
 
 /// Composites ray `r` of `set` from its samples (`t`, `delta`) and the field's outputs at them
@@ -195,10 +201,16 @@ mod tests {
         assert!((c.opacity - op).abs() < 1e-5);
         assert!((c.rgb[1] - 0.4 * op).abs() < 1e-5);
         // Expected t: sum w_i t_i / sum w_i with w_i = e^{-0.5 i}(1 - e^{-0.5}).
-        let w: Vec<f32> = (0..4).map(|i| (-0.5 * i as f32).exp() * (1.0 - (-0.5f32).exp())).collect();
+        let w: Vec<f32> = (0..4)
+            .map(|i| (-0.5 * i as f32).exp() * (1.0 - (-0.5f32).exp()))
+            .collect();
         let et = w.iter().zip(&t).map(|(a, b)| a * b).sum::<f32>() / w.iter().sum::<f32>();
         assert!((c.t - et).abs() < 1e-4);
-        assert_eq!(set.classes[c.class], labels::CAR, "car logits dominate the 86% opacity");
+        assert_eq!(
+            set.classes[c.class],
+            labels::CAR,
+            "car logits dominate the 86% opacity"
+        );
         assert_eq!(set.classes[c.fixed_class], labels::CAR);
         assert_eq!(c.thing, Some(0));
     }
@@ -207,7 +219,16 @@ mod tests {
     fn transparent_rays_are_sky_and_opaque_rays_stop_early() {
         let set = one_ray();
         let mut sc = Scratch::new(3, 1);
-        let c = composite_ray(&set, 0, &[5.0], &[1.0], &[0.0], &[1.0; 3], &[9.0, 0.0, 0.0], &mut sc);
+        let c = composite_ray(
+            &set,
+            0,
+            &[5.0],
+            &[1.0],
+            &[0.0],
+            &[1.0; 3],
+            &[9.0, 0.0, 0.0],
+            &mut sc,
+        );
         assert_eq!(set.classes[c.class], labels::SKY);
         assert_eq!(c.opacity, 0.0);
         assert_eq!(c.thing, None);

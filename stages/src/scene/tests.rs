@@ -31,38 +31,17 @@ fn default_scene() -> &'static (SceneParams, Generated) {
     })
 }
 
-/// mIoU (percent) over classes present in GT or prediction; GT 0 (void) ignored. A stand-in
-/// for the metrics module.
+/// mIoU (percent) of predictions against GT over the paper's classes (the metrics module's
+/// definition: classes present in GT or prediction, GT void ignored).
 fn miou(pairs: &[(&[u8], &[u8])]) -> f64 {
-    let mut conf = vec![[0u64; 256]; 256];
+    let mut conf = crate::metrics::ConfusionMatrix::new(labels::PAPER_CLASSES).unwrap();
     for (gt, pred) in pairs {
-        for (&g, &p) in gt.iter().zip(pred.iter()) {
-            if g != 0 {
-                conf[g as usize][p as usize] += 1;
-            }
-        }
+        conf.add(gt, pred).unwrap();
     }
-    // (class, IoU, GT pixels) for classes present in GT or prediction.
-    let ious: Vec<(usize, f64, u64)> = (0..256)
-        .filter_map(|k| {
-            let tp = conf[k][k];
-            let gt: u64 = conf[k].iter().sum();
-            let pred: u64 = conf.iter().map(|row| row[k]).sum();
-            let union = gt + pred - tp;
-            (union > 0).then(|| (k, tp as f64 / union as f64, gt))
-        })
-        .collect();
     if std::env::var("SCENE_DEBUG").is_ok() {
-        let per: Vec<String> = ious
-            .iter()
-            .map(|&(k, iou, gt)| {
-                let name = labels::by_id(k as u8).map_or("?", |l| l.name);
-                format!("{name}:{:.0}({gt})", 100.0 * iou)
-            })
-            .collect();
-        eprintln!("{}", per.join(" "));
+        eprintln!("{conf}");
     }
-    100.0 * ious.iter().map(|i| i.1).sum::<f64>() / ious.len() as f64
+    100.0 * conf.miou().unwrap()
 }
 
 fn pseudo_miou(p: &SceneParams, g: &Generated, level: f64) -> f64 {
@@ -522,35 +501,6 @@ fn local_meshes_are_closed_and_outward() {
         )
         .unwrap();
     }
-}
-
-/// `SCENE_EXPORT_DIR=/tmp/x [SCENE_PARAMS='{..}'] cargo test -p stages export_default_scene -- --ignored` writes the
-/// default scene's export (KITTI-360 layout + previews) for a person to look at.
-#[test]
-#[ignore]
-fn export_default_scene() {
-    let dir = std::env::var("SCENE_EXPORT_DIR").expect("set SCENE_EXPORT_DIR");
-    // Optional overrides, e.g. SCENE_PARAMS='{"scale": 1.0, "frames": 2}'.
-    let p: SceneParams = std::env::var("SCENE_PARAMS")
-        .map(|j| serde_json::from_str(&j).expect("SCENE_PARAMS is a params object"))
-        .unwrap_or_default();
-    let t0 = Instant::now();
-    let t = TypedStage::run(
-        &SyntheticScene,
-        &p,
-        &crate::Inputs::new(Default::default()),
-        &NoProgress,
-    )
-    .unwrap();
-    eprintln!("run: {:.2?}", t0.elapsed());
-    let files = Stage::export(
-        &SyntheticScene,
-        &serde_json::to_value(&p).unwrap(),
-        &t,
-        std::path::Path::new(&dir),
-    )
-    .unwrap();
-    eprintln!("{} files in {dir}", files.len());
 }
 
 #[test]
