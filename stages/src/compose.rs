@@ -166,7 +166,7 @@ mod tests {
 
     fn one_ray() -> RaySet {
         RaySet {
-            classes: vec![labels::ROAD, labels::SKY, labels::CAR],
+            classes: vec![labels::ROAD, labels::CAR, labels::SKY],
             things: vec![(labels::CAR, 3)],
             origin: vec![[0.0; 3]],
             dir: vec![[0.0, 0.0, 1.0]],
@@ -180,7 +180,7 @@ mod tests {
             label: vec![0],
             u_mask: vec![true],
             depth: vec![0.0],
-            prim_class: vec![2],
+            prim_class: vec![1],
             prim_thing: vec![0],
             ..Default::default()
         }
@@ -194,7 +194,7 @@ mod tests {
         let delta = [1.0; 4];
         let sigma = [0.5; 4];
         let rgb = [0.2, 0.4, 0.6].repeat(4);
-        let logits = [0.0, 0.0, 5.0].repeat(4);
+        let logits = [0.0, 5.0, 0.0].repeat(4);
         let mut sc = Scratch::new(3, 1);
         let c = composite_ray(&set, 0, &t, &delta, &sigma, &rgb, &logits, &mut sc);
         let op = 1.0 - (-2.0f32).exp();

@@ -101,7 +101,7 @@ pub struct ImageInfo {
 /// Every ray of the selected images with its intervals and targets. Scene frame, f32.
 #[derive(Debug, Clone, Default)]
 pub struct RaySet {
-    /// Label ids the fields predict: classes of the primitives plus sky, ascending.
+    /// Label ids the fields predict: classes of the primitives ascending, then sky (last).
     pub classes: Vec<u8>,
     /// Thing instances (label, instance) of the primitives, sorted: the fixed instance field's
     /// entries.
@@ -177,10 +177,11 @@ impl RaySet {
         stereo: Option<&ImageRows>,
         rays_t: &arrow::record_batch::RecordBatch,
     ) -> Result<RaySet> {
-        let mut classes: Vec<u8> = prims.iter().map(|p| p.label).collect();
-        classes.push(labels::SKY);
+        // Primitive classes ascending, then sky last (the fields' convention).
+        let mut classes: Vec<u8> = prims.iter().map(|p| p.label).filter(|&l| l != labels::SKY).collect();
         classes.sort_unstable();
         classes.dedup();
+        classes.push(labels::SKY);
         let class_index = |l: u8| {
             classes
                 .iter()
@@ -624,7 +625,7 @@ mod tests {
     /// One ray crossing a car box [5, 7] inside a road slab [4, 10], sky [10, 60].
     fn toy() -> RaySet {
         RaySet {
-            classes: vec![labels::ROAD, labels::SKY, labels::CAR],
+            classes: vec![labels::ROAD, labels::CAR, labels::SKY],
             things: vec![(labels::CAR, 1)],
             origin: vec![[0.0; 3]],
             dir: vec![[0.0, 0.0, 1.0]],
@@ -635,10 +636,10 @@ mod tests {
             prim: vec![0, 1],
             sky: vec![[10.0, 60.0]],
             rgb: vec![[0.5; 3]],
-            label: vec![2],
+            label: vec![1],
             u_mask: vec![true],
             depth: vec![0.0],
-            prim_class: vec![0, 2],
+            prim_class: vec![0, 1],
             prim_thing: vec![u32::MAX, 0],
             ..Default::default()
         }
@@ -654,9 +655,9 @@ mod tests {
             !fixed_semantic_at(&set, 0, 6.0, &mut out),
             "road and car overlap"
         );
-        assert_eq!(out, [0.5, 0.0, 0.5]);
+        assert_eq!(out, [0.5, 0.5, 0.0]);
         assert!(fixed_semantic_at(&set, 0, 30.0, &mut out));
-        assert_eq!(out, [0.0, 1.0, 0.0], "sky interval");
+        assert_eq!(out, [0.0, 0.0, 1.0], "sky interval");
         assert!(!fixed_semantic_at(&set, 0, 2.0, &mut out));
         assert_eq!(out, [0.0; 3], "outside everything");
         let mut inst = [0.0];
@@ -704,7 +705,7 @@ mod tests {
         let c = sample_batch(&set, &[0], &p, Some(4));
         assert_eq!(a.t, b.t);
         assert_ne!(a.t, c.t);
-        assert_eq!(a.label, vec![2]);
+        assert_eq!(a.label, vec![1]);
         assert_eq!(a.positions.len(), p.per_ray() * 3);
     }
 }
