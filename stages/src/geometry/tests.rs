@@ -460,6 +460,38 @@ fn grazing_and_parallel_rays() {
 }
 
 #[test]
+fn meshes_with_per_face_vertex_copies_are_welded() {
+    let Shape::Mesh { vertices, faces } = cube_mesh() else {
+        unreachable!()
+    };
+    let (mut vs, mut fs) = (Vec::new(), Vec::new());
+    for f in &faces {
+        let base = vs.len() as u32;
+        vs.extend(f.iter().map(|&i| vertices[i as usize]));
+        fs.push([base, base + 1, base + 2]);
+    }
+    let p = unit(Shape::Mesh {
+        vertices: vs.clone(),
+        faces: fs.clone(),
+    });
+    assert_spans(
+        &spans(&p, &Ray::new(DVec3::new(-2.0, 0.1, 0.1), DVec3::X)),
+        &[(1.5, 2.5)],
+    );
+    // Still open when a face is missing.
+    let e = Primitive::new(
+        Shape::Mesh {
+            vertices: vs,
+            faces: fs[1..].to_vec(),
+        },
+        DAffine3::IDENTITY,
+        1,
+        0,
+    );
+    assert!(e.unwrap_err().to_string().contains("not closed"));
+}
+
+#[test]
 fn inward_wound_mesh_is_flipped() {
     let Shape::Mesh { vertices, faces } = cube_mesh() else {
         unreachable!()
