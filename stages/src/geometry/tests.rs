@@ -138,7 +138,11 @@ fn arb_ray_at(p: &Primitive) -> impl Strategy<Value = Ray> {
     })
 }
 
+/// `cases` by default; `PROPTEST_CASES=N` in the environment overrides it (for soak runs).
 fn cfg(cases: u32) -> ProptestConfig {
+    if std::env::var_os("PROPTEST_CASES").is_some() {
+        return ProptestConfig::default();
+    }
     ProptestConfig {
         cases,
         ..ProptestConfig::default()
