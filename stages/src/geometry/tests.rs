@@ -260,18 +260,29 @@ proptest! {
         let mut rng = Rng::new(seed ^ 77);
         let mut got = Vec::new();
         let mut ids = Vec::new();
+        let mut total_hits = 0;
         for _ in 0..200 {
             let o = DVec3::new(rng.range(-30.0, 30.0), rng.range(-30.0, 30.0), rng.range(-30.0, 30.0));
-            let r = Ray::new(o, rng.unit());
+            // Half the rays aim near a random primitive, half go anywhere.
+            let dir = if n > 0 && rng.below(2) == 0 {
+                let c = prims[rng.below(n)].aabb().centre();
+                c + rng.unit() * rng.range(0.0, 2.0) - o
+            } else {
+                rng.unit()
+            };
+            let r = Ray::new(o, dir);
             let t_max = rng.range(10.0, 80.0);
             let want = brute_force(&prims, &r, t_min, t_max);
             bvh.intersect_all(&prims, &r, t_min, t_max, &mut got);
             prop_assert_eq!(&got, &want, "ray {:?}", r);
+            total_hits += got.len();
             prop_assert_eq!(bvh.first_hit(&prims, &r, t_min, t_max), want.first().copied(), "ray {:?}", r);
             let want_ids: Vec<u32> = (0..prims.len() as u32).filter(|&i| prims[i as usize].contains(o)).collect();
             bvh.containing(&prims, o, &mut ids);
             prop_assert_eq!(&ids, &want_ids, "point {:?}", o);
         }
+        // Not vacuous: rays aimed at primitives hit them.
+        prop_assert!(n < 10 || total_hits > 20, "only {} hits", total_hits);
     }
 }
 
