@@ -12,7 +12,11 @@
 //! Point test: the generalised winding number (sum of signed solid angles / 4 pi), independent
 //! of the ray code, so tests can use one to check the other.
 
-use std::{cell::RefCell, collections::BTreeMap, f64::consts::PI};
+use std::{
+    cell::RefCell,
+    collections::{BTreeMap, HashMap},
+    f64::consts::PI,
+};
 
 use glam::DVec3;
 
@@ -48,7 +52,8 @@ pub struct Mesh {
 
 impl Mesh {
     /// Validates: finite, non-empty, indices in range, no degenerate face, every edge used by
-    /// exactly two faces in opposite directions, non-zero volume. An inward-wound mesh (negative
+    /// exactly two faces in opposite directions (after welding vertices with identical
+    /// coordinates; error messages use the lowest index of each welded vertex), non-zero volume. An inward-wound mesh (negative
     /// volume) is flipped.
     pub fn new(vertices: &[DVec3], faces: &[[u32; 3]]) -> Result<Self, GeometryError> {
         if vertices.iter().any(|v| !v.is_finite()) {
@@ -59,7 +64,6 @@ impl Mesh {
         }
         let bounds = Aabb::from_points(vertices.iter().copied());
         let diag = bounds.extent().length();
-        let mut edges: BTreeMap<(u32, u32), (u32, u32)> = BTreeMap::new();
         for (fi, f) in faces.iter().enumerate() {
             for &index in f {
                 if index as usize >= vertices.len() {
@@ -70,6 +74,22 @@ impl Mesh {
                     });
                 }
             }
+        }
+        // Weld vertices with identical coordinates (meshes exported with per-face vertex
+        // copies), so that connectivity is judged by position, not by index.
+        let mut first_at: HashMap<[u64; 3], u32> = HashMap::new();
+        let canon: Vec<u32> = vertices
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                let key = (*v + DVec3::ZERO).to_array().map(f64::to_bits); // -0.0 == 0.0
+                *first_at.entry(key).or_insert(i as u32)
+            })
+            .collect();
+        let faces: Vec<[u32; 3]> = faces.iter().map(|f| f.map(|i| canon[i as usize])).collect();
+        let faces = &faces[..];
+        let mut edges: BTreeMap<(u32, u32), (u32, u32)> = BTreeMap::new();
+        for (fi, f) in faces.iter().enumerate() {
             let [a, b, c] = f.map(|i| vertices[i as usize]);
             if f[0] == f[1]
                 || f[1] == f[2]

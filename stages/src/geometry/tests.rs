@@ -138,7 +138,11 @@ fn arb_ray_at(p: &Primitive) -> impl Strategy<Value = Ray> {
     })
 }
 
+/// `cases` by default; `PROPTEST_CASES=N` in the environment overrides it (for soak runs).
 fn cfg(cases: u32) -> ProptestConfig {
+    if std::env::var_os("PROPTEST_CASES").is_some() {
+        return ProptestConfig::default();
+    }
     ProptestConfig {
         cases,
         ..ProptestConfig::default()
@@ -256,18 +260,29 @@ proptest! {
         let mut rng = Rng::new(seed ^ 77);
         let mut got = Vec::new();
         let mut ids = Vec::new();
+        let mut total_hits = 0;
         for _ in 0..200 {
             let o = DVec3::new(rng.range(-30.0, 30.0), rng.range(-30.0, 30.0), rng.range(-30.0, 30.0));
-            let r = Ray::new(o, rng.unit());
+            // Half the rays aim near a random primitive, half go anywhere.
+            let dir = if n > 0 && rng.below(2) == 0 {
+                let c = prims[rng.below(n)].aabb().centre();
+                c + rng.unit() * rng.range(0.0, 2.0) - o
+            } else {
+                rng.unit()
+            };
+            let r = Ray::new(o, dir);
             let t_max = rng.range(10.0, 80.0);
             let want = brute_force(&prims, &r, t_min, t_max);
             bvh.intersect_all(&prims, &r, t_min, t_max, &mut got);
             prop_assert_eq!(&got, &want, "ray {:?}", r);
+            total_hits += got.len();
             prop_assert_eq!(bvh.first_hit(&prims, &r, t_min, t_max), want.first().copied(), "ray {:?}", r);
             let want_ids: Vec<u32> = (0..prims.len() as u32).filter(|&i| prims[i as usize].contains(o)).collect();
             bvh.containing(&prims, o, &mut ids);
             prop_assert_eq!(&ids, &want_ids, "point {:?}", o);
         }
+        // Not vacuous: rays aimed at primitives hit them.
+        prop_assert!(n < 10 || total_hits > 20, "only {} hits", total_hits);
     }
 }
 
@@ -457,6 +472,38 @@ fn grazing_and_parallel_rays() {
         &[(2.5, 3.5)],
     );
     assert!(spans(&tri, &Ray::new(DVec3::new(0.39, 0.3, -3.0), DVec3::Z)).is_empty());
+}
+
+#[test]
+fn meshes_with_per_face_vertex_copies_are_welded() {
+    let Shape::Mesh { vertices, faces } = cube_mesh() else {
+        unreachable!()
+    };
+    let (mut vs, mut fs) = (Vec::new(), Vec::new());
+    for f in &faces {
+        let base = vs.len() as u32;
+        vs.extend(f.iter().map(|&i| vertices[i as usize]));
+        fs.push([base, base + 1, base + 2]);
+    }
+    let p = unit(Shape::Mesh {
+        vertices: vs.clone(),
+        faces: fs.clone(),
+    });
+    assert_spans(
+        &spans(&p, &Ray::new(DVec3::new(-2.0, 0.1, 0.1), DVec3::X)),
+        &[(1.5, 2.5)],
+    );
+    // Still open when a face is missing.
+    let e = Primitive::new(
+        Shape::Mesh {
+            vertices: vs,
+            faces: fs[1..].to_vec(),
+        },
+        DAffine3::IDENTITY,
+        1,
+        0,
+    );
+    assert!(e.unwrap_err().to_string().contains("not closed"));
 }
 
 #[test]
