@@ -186,14 +186,14 @@ fn training_svg(log: &RecordBatch) -> Result<Option<String>> {
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for (f, col) in log.schema().fields().iter().zip(log.columns()) {
         let name = f.name();
-        if name == "iteration" || name.contains("seconds") || name == "lr" || name == "rays_per_s" {
+        if !name.starts_with("loss_") {
             continue;
         }
         let vals: Vec<f64> = match col.data_type() {
-            DataType::Float32 => tables::get_prim::<Float32Type>(log, "train_log", name)?
-                .iter()
-                .map(|&v| v as f64)
-                .collect(),
+            DataType::Float32 => {
+                let a = col.as_any().downcast_ref::<arrow::array::Float32Array>().unwrap();
+                (0..a.len()).map(|i| if a.is_null(i) { f64::NAN } else { a.value(i) as f64 }).collect()
+            }
             DataType::Float64 => f64_col(log, "train_log", name)?.values().to_vec(),
             _ => continue,
         };
