@@ -239,7 +239,7 @@ fn cmd_run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<i32> {
 fn cmd_status(p: &Pipeline, verify: bool) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open_existing(&p.cache_dir);
-    let res = runner::resolve(p, &dag, &store, verify);
+    let res = runner::resolve(p, &dag, &store, verify)?;
     let rows: Vec<Vec<String>> = dag
         .order
         .iter()
@@ -300,7 +300,7 @@ fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<crate::store::Ma
         .ok_or_else(|| usage(format!("no stage named `{stage}` in {}", p.file.display())))?;
     let dag = Dag::build(p)?;
     let store = Store::open_existing(&p.cache_dir);
-    let res = runner::resolve(p, &dag, &store, false);
+    let res = runner::resolve(p, &dag, &store, false)?;
     match &res[i].state {
         State::Fresh(m) => Ok((store, m.clone())),
         State::Stale(why) => Err(usage(format!(
@@ -405,7 +405,7 @@ fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open(&p.cache_dir)?;
     let _lock = crate::store::RunLock::acquire(store.root(), false)?;
-    let res = runner::resolve(p, &dag, &store, false);
+    let res = runner::resolve(p, &dag, &store, false)?;
     let mut keep: BTreeSet<String> = res
         .iter()
         .filter(|r| matches!(r.state, State::Fresh(_)))

@@ -41,14 +41,43 @@ pub struct Resolved {
     pub corrupt: bool,
 }
 
+/// Pseudo input slot under which the digest of a stage's external files enters its key.
+pub const FILES_SLOT: &str = "@files";
+
+/// Digests of the files outside the cache that stages read (`Stage::external_inputs`), by
+/// stage index. Contents are hashed, memoised by path, size, mtime and inode.
+pub fn external_digests(p: &Pipeline, store: &Store) -> Result<HashMap<usize, String>> {
+    let mut out = HashMap::new();
+    for (i, s) in p.stages.iter().enumerate() {
+        let paths = s
+            .kind
+            .external_inputs(&s.params)
+            .map_err(|e| anyhow!("stage `{}`: {e}", s.name))?;
+        if !paths.is_empty() {
+            out.insert(i, store.files_digest(&paths)?);
+        }
+    }
+    Ok(out)
+}
+
 /// The key of stage `i` given the output digests of its upstream stages.
 fn key_of(
     p: &Pipeline,
     i: usize,
     digests: &HashMap<usize, String>,
+    external: &HashMap<usize, String>,
 ) -> Option<(String, BTreeMap<String, InputInfo>)> {
     let s = &p.stages[i];
     let mut inputs = BTreeMap::new();
+    if let Some(d) = external.get(&i) {
+        inputs.insert(
+            FILES_SLOT.to_string(),
+            InputInfo {
+                stage: "(files outside the cache)".into(),
+                digest: d.clone(),
+            },
+        );
+    }
     for (slot, up) in &s.inputs {
         let u = p.index_of(up).expect("validated");
         inputs.insert(
@@ -124,6 +153,9 @@ fn explain(
     let slots: BTreeSet<&String> = rec.inputs.keys().chain(inputs.keys()).collect();
     for slot in slots {
         match (rec.inputs.get(slot), inputs.get(slot)) {
+            (Some(a), Some(b)) if slot == FILES_SLOT && a.digest != b.digest => {
+                why.push("its input files changed".to_string())
+            }
             (Some(a), Some(b)) if a.stage != b.stage => why.push(format!(
                 "input `{slot}` now comes from stage `{}` (was `{}`)",
                 b.stage, a.stage
@@ -145,11 +177,12 @@ fn explain(
 }
 
 /// Freshness of every stage, in topological order, without running anything.
-pub fn resolve(p: &Pipeline, dag: &Dag, store: &Store, full_verify: bool) -> Vec<Resolved> {
+pub fn resolve(p: &Pipeline, dag: &Dag, store: &Store, full_verify: bool) -> Result<Vec<Resolved>> {
+    let external = external_digests(p, store)?;
     let mut out: Vec<Option<Resolved>> = vec![None; p.stages.len()];
     let mut digests: HashMap<usize, String> = HashMap::new();
     for &i in &dag.order {
-        let r = match key_of(p, i, &digests) {
+        let r = match key_of(p, i, &digests, &external) {
             None => {
                 let stale_up: Vec<String> = p.stages[i]
                     .inputs
@@ -199,9 +232,10 @@ pub fn resolve(p: &Pipeline, dag: &Dag, store: &Store, full_verify: bool) -> Vec
         };
         out[i] = Some(r);
     }
-    out.into_iter()
+    Ok(out
+        .into_iter()
         .map(|r| r.expect("every stage resolved"))
-        .collect()
+        .collect())
 }
 
 /// What to run.
@@ -387,6 +421,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
     if !opts.dry_run {
         store.clean_tmp();
     }
+    let external = external_digests(&p, &store)?;
     let force: BTreeSet<usize> = if opts.force_all {
         selected.clone()
     } else {
@@ -455,7 +490,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                     continue;
                 }
                 let ov0 = Instant::now();
-                let (key, inputs) = key_of(&p, i, &digests).expect("inputs done");
+                let (key, inputs) = key_of(&p, i, &digests, &external).expect("inputs done");
                 let entry = store.check(&key, opts.verify);
                 let is_selected = selected.contains(&i);
                 let mut reason = match entry {
@@ -635,7 +670,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
             Ok((mut m, overhead)) => {
                 r.overhead_s += overhead;
                 let key = r.key.clone().unwrap_or_default();
-                let (_, inputs) = key_of(&p, i, &digests).expect("inputs done");
+                let (_, inputs) = key_of(&p, i, &digests, &external).expect("inputs done");
                 m.inputs = inputs.clone();
                 store.save_run_record(
                     &s.name,

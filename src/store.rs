@@ -268,6 +268,64 @@ impl Store {
         Entry::Valid(Box::new(m))
     }
 
+    /// blake3 over the contents of `paths` (directories recursively, in sorted order; a missing
+    /// path enters as "missing" so the stage itself reports it). File hashes are memoised by
+    /// path, size, mtime and inode in `state/files.json`.
+    pub fn files_digest(&self, paths: &[PathBuf]) -> Result<String> {
+        type FileMemo = BTreeMap<String, ((u64, i64, u64), String)>;
+        let memo_path = self.root.join("state").join("files.json");
+        let mut memo: FileMemo = fs::read(&memo_path)
+            .ok()
+            .and_then(|b| serde_json::from_slice(&b).ok())
+            .unwrap_or_default();
+        let mut changed = false;
+        let mut files = Vec::new();
+        for p in paths {
+            collect_files(p, &mut files);
+        }
+        let mut h = blake3::Hasher::new();
+        for f in files {
+            let name = f.to_string_lossy().into_owned();
+            h.update(name.as_bytes());
+            h.update(&[0]);
+            let digest = match fs::metadata(&f) {
+                Err(_) => "missing".to_string(),
+                Ok(meta) => {
+                    let stamp = (
+                        meta.len(),
+                        meta.mtime() * 1_000_000_000 + meta.mtime_nsec(),
+                        meta.ino(),
+                    );
+                    match memo.get(&name) {
+                        Some((s, d)) if *s == stamp => d.clone(),
+                        _ => {
+                            let bytes = fs::read(&f)
+                                .with_context(|| format!("reading input file {}", f.display()))?;
+                            let d = hash_bytes(&bytes);
+                            memo.insert(name.clone(), (stamp, d.clone()));
+                            changed = true;
+                            d
+                        }
+                    }
+                }
+            };
+            h.update(digest.as_bytes());
+            h.update(b"\n");
+        }
+        if changed {
+            let tmp = self
+                .root
+                .join("state")
+                .join(format!("files.json.{}", std::process::id()));
+            if fs::create_dir_all(self.root.join("state")).is_ok()
+                && fs::write(&tmp, serde_json::to_vec(&memo).unwrap_or_default()).is_ok()
+            {
+                let _ = fs::rename(&tmp, &memo_path);
+            }
+        }
+        Ok(h.finalize().to_hex().to_string())
+    }
+
     /// Moves a corrupt entry to `trash/` so it is kept for inspection but never used.
     pub fn quarantine(&self, key: &str) -> Result<PathBuf> {
         let dest = self.root.join("trash").join(format!(
@@ -471,6 +529,21 @@ impl Store {
             let _ = fs::create_dir_all(self.root.join("trash"));
         }
         Ok((removed, bytes))
+    }
+}
+
+/// `path` itself if it is not a directory, else every file below it, sorted.
+fn collect_files(path: &Path, out: &mut Vec<PathBuf>) {
+    if path.is_dir() {
+        let mut entries: Vec<PathBuf> = fs::read_dir(path)
+            .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).collect())
+            .unwrap_or_default();
+        entries.sort();
+        for e in entries {
+            collect_files(&e, out);
+        }
+    } else {
+        out.push(path.to_path_buf());
     }
 }
 

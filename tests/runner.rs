@@ -350,6 +350,49 @@ fn jobs_run_independent_stages_at_once() {
 }
 
 #[test]
+fn editing_an_external_input_file_reruns_exactly_what_depends_on_it() {
+    let ws = Workspace::new(
+        "stages:\n  f:\n    uses: test_file\n    params: {path: numbers.txt}\n  m:\n    uses: test_map\n    inputs: {src: f}\n  s:\n    uses: test_source\n",
+    );
+    let file = ws.dir().join("numbers.txt");
+    fs::write(&file, "1\n2\n").unwrap();
+    ws.run_ok(&[]);
+    ws.run_ok(&[]);
+    assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
+    // Same content, new mtime: re-hashed, still cached.
+    thread::sleep(Duration::from_millis(20));
+    fs::write(&file, "1\n2\n").unwrap();
+    ws.run_ok(&[]);
+    assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
+    fs::write(&file, "1\n3\n").unwrap();
+    let st = ws.status(&[]);
+    assert!(
+        ws.status_line(&st, "f").contains("its input files changed"),
+        "{st}"
+    );
+    ws.run_ok(&[]);
+    let r = ws.last_run_map();
+    assert_eq!(
+        (r["f"], r["m"], r["s"]),
+        (Outcome::Ran, Outcome::Ran, Outcome::Cached)
+    );
+    assert_eq!(ws.numbers("m"), vec![2, 6]);
+}
+
+#[test]
+fn an_unusable_cache_directory_is_a_clear_error() {
+    let ws = Workspace::new("cache: not-a-dir/cache\nstages:\n  a:\n    uses: test_source\n");
+    fs::write(ws.dir().join("not-a-dir"), "a file").unwrap();
+    let (code, _, err) = ws.run(&[]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("cannot create cache directory") && err.contains("not-a-dir"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
 fn gc_removes_unreachable_entries() {
     let ws = Workspace::new(CHAIN);
     ws.run_ok(&[]);

@@ -131,6 +131,9 @@ pub trait Stage: Send + Sync {
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
     /// Writes the stage's human-facing files (PNGs, reports) into `dir`; returns what it wrote.
     fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>>;
+    /// Files and directories outside the cache this run will read (e.g. a KITTI-360 root); the
+    /// runner hashes their content into the stage's key, so editing one re-runs the stage.
+    fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>>;
 }
 
 /// A stage kind with typed parameters. Params are a serde struct with `#[serde(default,
@@ -159,6 +162,10 @@ pub trait TypedStage: Send + Sync {
         _tables: &Tables,
         _dir: &Path,
     ) -> Result<Vec<PathBuf>> {
+        Ok(Vec::new())
+    }
+    /// Files outside the cache the stage reads (see [`Stage::external_inputs`]).
+    fn external_inputs(&self, _params: &Self::Params) -> Result<Vec<PathBuf>> {
         Ok(Vec::new())
     }
 }
@@ -198,6 +205,10 @@ impl<T: TypedStage> Stage for T {
     fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         let p: T::Params = typed_params(params)?;
         TypedStage::export(self, &p, tables, dir)
+    }
+    fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>> {
+        let p: T::Params = typed_params(params)?;
+        TypedStage::external_inputs(self, &p)
     }
 }
 

@@ -162,6 +162,44 @@ impl TypedStage for TestMap {
     }
 }
 
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FileParams {
+    /// A text file of numbers, one per line.
+    pub path: String,
+}
+
+/// Reads numbers from a file outside the cache (exercises `external_inputs`).
+pub struct TestFile;
+
+impl TypedStage for TestFile {
+    type Params = FileParams;
+    const KIND: &'static str = "test_file";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str = "test kind: numbers read from a file";
+    const INPUTS: &'static [InputSlot] = &[];
+    const OUTPUTS: &'static [&'static str] = &["test_numbers"];
+
+    fn run(&self, p: &FileParams, _: &Inputs, _: &dyn Progress) -> Result<Tables> {
+        let text = std::fs::read_to_string(&p.path)
+            .map_err(|e| StageError::Input(format!("{}: {e}", p.path)))?;
+        let values = text
+            .lines()
+            .map(|l| {
+                l.trim()
+                    .parse::<i64>()
+                    .map_err(|e| StageError::Input(format!("{}: `{l}`: {e}", p.path)))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let t = tables::build("test_numbers", vec![tables::prim::<Int64Type>(values)])?;
+        Ok(Tables::from([("test_numbers".to_string(), t)]))
+    }
+
+    fn external_inputs(&self, p: &FileParams) -> Result<Vec<std::path::PathBuf>> {
+        Ok(vec![p.path.clone().into()])
+    }
+}
+
 pub fn kinds() -> Vec<Box<dyn Stage>> {
-    vec![Box::new(TestSource), Box::new(TestMap)]
+    vec![Box::new(TestSource), Box::new(TestMap), Box::new(TestFile)]
 }
