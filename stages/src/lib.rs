@@ -5,10 +5,12 @@
 //! another stage's files; the runner alone knows about hashing, caching, ordering and timing.
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
+pub mod field;
 pub mod labels;
 pub mod schema;
 pub mod tables;
 pub mod testing;
+pub mod train;
 
 use std::{collections::BTreeMap, fmt, path::Path, path::PathBuf};
 
