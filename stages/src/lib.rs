@@ -7,6 +7,7 @@
 
 pub mod compose;
 pub mod evaluate;
+pub mod field;
 pub mod geometry;
 pub mod labels;
 pub mod metrics;
@@ -18,6 +19,7 @@ pub mod scene;
 pub mod schema;
 pub mod tables;
 pub mod testing;
+pub mod train;
 
 use std::{collections::BTreeMap, fmt, path::Path, path::PathBuf};
 

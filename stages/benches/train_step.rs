@@ -1,0 +1,124 @@
+//! Micro-benchmark: one training step (host prep + forward + 5 losses + backward + clipping +
+//! Adam) at 1024 and 4096 rays x 32 samples, per compiled-in backend and per encoding.
+//!
+//! Run: `cargo bench -p stages --bench train_step` (add `--features ndarray` to compare with
+//! burn-ndarray; `BENCH_STEPS=n` sets the timed steps, default 5, after 2 warm-up steps).
+
+use std::time::Instant;
+
+use stages::field::mlp::SplitMix64;
+use stages::field::{Backend, EncodingKind, FieldConfig, FieldSpec};
+use stages::train::{RayBatch, RaySamples, RayTargets, TrainConfig, Trainer};
+
+const SAMPLES: usize = 32;
+const CLASSES: usize = 10;
+
+fn random_batch(rays: usize, seed: u64) -> RayBatch {
+    let mut rng = SplitMix64::new(seed);
+    let mut s = RaySamples {
+        rays,
+        samples: SAMPLES,
+        classes: CLASSES,
+        ..Default::default()
+    };
+    let mut t = RayTargets::default();
+    for _ in 0..rays {
+        let o = [
+            rng.uniform(-10.0, 10.0),
+            rng.uniform(-10.0, 10.0),
+            rng.uniform(0.0, 2.0),
+        ];
+        let d = [rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 1.0];
+        let mut z = rng.uniform(1.0, 5.0);
+        for _ in 0..SAMPLES {
+            let delta = rng.uniform(0.05, 0.5);
+            z += delta;
+            s.positions.extend((0..3).map(|a| o[a] + z * d[a]));
+            s.deltas.push(delta);
+            s.t_mid.push(z);
+            let mut p = vec![0f32; CLASSES];
+            p[rng.below(CLASSES)] = 1.0;
+            s.fixed_semantics.extend(p);
+        }
+        s.directions.extend_from_slice(&d);
+        t.labels.push(rng.below(CLASSES) as i32);
+        t.ray_mask.push((rng.unit() < 0.8) as u8 as f32);
+        t.depth.push(rng.uniform(2.0, 20.0));
+        t.depth_valid.push(rng.unit() < 0.5);
+        t.rgb.extend((0..3).map(|_| rng.unit()));
+    }
+    RayBatch {
+        samples: s,
+        targets: t,
+    }
+}
+
+fn main() {
+    let steps: usize = std::env::var("BENCH_STEPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(5);
+    println!(
+        "train_step: {} threads, {steps} timed steps after 2 warm-up",
+        rayon::current_num_threads()
+    );
+    println!(
+        "{:<8} {:<5} {:>6} {:>10} {:>10}",
+        "backend", "enc", "rays", "mean ms", "min ms"
+    );
+    let configs = [
+        ("grid", FieldConfig::default()),
+        (
+            "pe",
+            FieldConfig {
+                pe_position_frequencies: 10,
+                ..FieldConfig::pe()
+            },
+        ),
+    ];
+    for backend in Backend::available() {
+        for (name, field) in &configs {
+            for rays in [1024, 4096] {
+                if field.encoding == EncodingKind::Pe
+                    && rays > 1024
+                    && std::env::var("BENCH_PE_4096").is_err()
+                {
+                    continue;
+                }
+                let config = TrainConfig {
+                    field: field.clone(),
+                    rays_per_batch: rays,
+                    ..Default::default()
+                };
+                let spec = FieldSpec {
+                    config: field.clone(),
+                    num_classes: CLASSES,
+                    aabb_min: [-12.0, -12.0, 0.0],
+                    aabb_max: [12.0, 12.0, 40.0],
+                    seed: 0,
+                };
+                let mut trainer = Trainer::new(config, spec, backend).expect("trainer");
+                let batch = random_batch(rays, 1);
+                for _ in 0..2 {
+                    trainer.step(&batch).expect("warm-up step");
+                }
+                let mut times = Vec::new();
+                for _ in 0..steps {
+                    let t0 = Instant::now();
+                    trainer.step(&batch).expect("step");
+                    times.push(t0.elapsed().as_secs_f64() * 1e3);
+                }
+                let mean = times.iter().sum::<f64>() / times.len() as f64;
+                let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
+                println!(
+                    "{:<8} {:<5} {:>6} {:>10.1} {:>10.1}",
+                    backend.name(),
+                    name,
+                    rays,
+                    mean,
+                    min
+                );
+            }
+        }
+    }
+}

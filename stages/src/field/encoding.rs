@@ -1,0 +1,329 @@
+//! Position and direction encodings of the radiance field: the multi-resolution hash/dense grid
+//! (default, fast) and the paper's sinusoidal positional encoding (`pe`).
+//!
+//! Design (measured on the 2-core dev machine, see issue 5 and the `train_step` bench): the
+//! integer part of a grid lookup (which 8 vertices of which cell, per level) and the trilinear
+//! weights carry no gradient, so they are computed in plain Rust with rayon into flat buffers
+//! ([`GridLookup`]); burn then only does `select` rows of the learnable table + a weighted sum,
+//! so the tables stay ordinary burn parameters with autodiff on every backend. Building the
+//! indices with burn tensor ops instead cost 220-330 ms more per 131072 samples, and `gather`
+//! was slower than `select` on flex.
+//!
+//! The positional encoding has no parameters, so it is computed entirely on the host.
+//!
+//! Positions are expected in the unit cube `[0, 1]^3` (the field normalises by the scene AABB
+//! and clamps, see [`crate::field::radiance`]).
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::mlp::SplitMix64;
+
+/// Which position encoding the field uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum EncodingKind {
+    /// Multi-resolution hash/dense grid + small MLPs (instant-NGP style): fast.
+    #[default]
+    Grid,
+    /// Sinusoidal positional encoding + a wider MLP (the paper's NeRF).
+    Pe,
+}
+
+/// Parameters of the multi-resolution grid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridConfig {
+    /// Number of resolution levels.
+    pub levels: usize,
+    /// Learned features per level (the encoding has `levels * features_per_level` values).
+    pub features_per_level: usize,
+    /// log2 of the table rows per level; coarse levels that fit are dense, fine ones hashed.
+    pub log2_table_size: u32,
+    /// Cells per axis of the coarsest level.
+    pub base_resolution: u32,
+    /// Cells per axis of the finest level (levels are geometric in between).
+    pub max_resolution: u32,
+    /// Table entries start uniform in [-init_scale, init_scale].
+    pub init_scale: f32,
+}
+
+impl Default for GridConfig {
+    fn default() -> Self {
+        Self {
+            levels: 8,
+            features_per_level: 2,
+            log2_table_size: 16,
+            base_resolution: 16,
+            max_resolution: 512,
+            init_scale: 1e-4,
+        }
+    }
+}
+
+impl GridConfig {
+    /// Width of the encoding.
+    pub fn output_dim(&self) -> usize {
+        self.levels * self.features_per_level
+    }
+
+    /// Rows of one level's table.
+    pub fn table_size(&self) -> usize {
+        1usize << self.log2_table_size
+    }
+
+    /// Cells per axis of level `l`.
+    pub fn resolution(&self, level: usize) -> u32 {
+        if self.levels <= 1 {
+            return self.base_resolution;
+        }
+        let growth = ((self.max_resolution as f64).ln() - (self.base_resolution as f64).ln())
+            / (self.levels - 1) as f64;
+        ((self.base_resolution as f64) * (growth * level as f64).exp()).floor() as u32
+    }
+
+    /// Checks the ranges; errors name the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.levels == 0 || self.features_per_level == 0 {
+            return Err("grid.levels and grid.features_per_level must be >= 1".into());
+        }
+        if !(4..=24).contains(&self.log2_table_size) {
+            return Err("grid.log2_table_size must be in 4..=24".into());
+        }
+        if self.base_resolution == 0 || self.max_resolution < self.base_resolution {
+            return Err("grid.base_resolution must be >= 1 and <= grid.max_resolution".into());
+        }
+        Ok(())
+    }
+}
+
+/// Host-computed plan of one grid lookup: for each point, level and cell corner, the row of the
+/// (all levels stacked) table and its trilinear weight.
+///
+/// # Shapes
+/// `indices`, `weights`: `[points, levels, 8]` flattened row-major.
+#[derive(Debug, Clone)]
+pub struct GridLookup {
+    pub points: usize,
+    pub indices: Vec<i32>,
+    pub weights: Vec<f32>,
+}
+
+const HASH_PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
+
+/// Computes the corner rows and trilinear weights of `unit_positions` (in `[0,1]^3`, clamped).
+///
+/// # Shapes
+/// `unit_positions`: `[points, 3]` flattened.
+pub fn grid_lookup(config: &GridConfig, unit_positions: &[f32]) -> GridLookup {
+    assert_eq!(unit_positions.len() % 3, 0, "positions must be [points, 3]");
+    let points = unit_positions.len() / 3;
+    let levels = config.levels;
+    let table = config.table_size();
+    let per_point = levels * 8;
+    let mut indices = vec![0i32; points * per_point];
+    let mut weights = vec![0f32; points * per_point];
+    let level_info: Vec<(u32, bool)> = (0..levels)
+        .map(|l| {
+            let n = config.resolution(l);
+            let vertices = (n as u64 + 1).pow(3);
+            (n, vertices <= table as u64)
+        })
+        .collect();
+    indices
+        .par_chunks_mut(per_point)
+        .zip(weights.par_chunks_mut(per_point))
+        .zip(unit_positions.par_chunks(3))
+        .for_each(|((idx, w), p)| {
+            for (l, &(n, dense)) in level_info.iter().enumerate() {
+                let mut cell = [0u32; 3];
+                let mut frac = [0f32; 3];
+                for a in 0..3 {
+                    let x = p[a].clamp(0.0, 1.0) * n as f32;
+                    let c = (x.floor() as u32).min(n - 1);
+                    cell[a] = c;
+                    frac[a] = (x - c as f32).clamp(0.0, 1.0);
+                }
+                let offset = (l * table) as u32;
+                for corner in 0..8 {
+                    let mut weight = 1.0f32;
+                    let mut v = [0u32; 3];
+                    for a in 0..3 {
+                        let bit = (corner >> a) & 1;
+                        v[a] = cell[a] + bit as u32;
+                        weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
+                    }
+                    let row = if dense {
+                        let side = n + 1;
+                        v[0] + side * (v[1] + side * v[2])
+                    } else {
+                        (v[0].wrapping_mul(HASH_PRIMES[0])
+                            ^ v[1].wrapping_mul(HASH_PRIMES[1])
+                            ^ v[2].wrapping_mul(HASH_PRIMES[2]))
+                            & (table as u32 - 1)
+                    };
+                    idx[l * 8 + corner] = (offset + row) as i32;
+                    w[l * 8 + corner] = weight;
+                }
+            }
+        });
+    GridLookup {
+        points,
+        indices,
+        weights,
+    }
+}
+
+/// The learnable tables of the grid (all levels stacked).
+#[derive(Module, Debug)]
+pub struct HashGrid {
+    /// `[levels * table_size, features_per_level]`.
+    pub table: Param<Tensor<2>>,
+    #[module(skip)]
+    pub levels: usize,
+    #[module(skip)]
+    pub features: usize,
+}
+
+impl HashGrid {
+    /// A grid with small uniform random entries, reproducible from `rng`.
+    pub fn new(config: &GridConfig, rng: &mut SplitMix64, device: &Device) -> Self {
+        let rows = config.levels * config.table_size();
+        let f = config.features_per_level;
+        let values: Vec<f32> = (0..rows * f)
+            .map(|_| rng.uniform(-config.init_scale, config.init_scale))
+            .collect();
+        let table = Tensor::from_data(TensorData::new(values, [rows, f]), device);
+        Self {
+            table: Param::from_tensor(table),
+            levels: config.levels,
+            features: f,
+        }
+    }
+
+    /// Interpolated features.
+    ///
+    /// # Shapes
+    /// returns `[points, levels * features_per_level]`.
+    pub fn forward(&self, lookup: &GridLookup) -> Tensor<2> {
+        let device = self.table.device();
+        let rows = lookup.points * self.levels * 8;
+        let idx =
+            Tensor::<1, Int>::from_data(TensorData::new(lookup.indices.clone(), [rows]), &device);
+        let w = Tensor::<2>::from_data(TensorData::new(lookup.weights.clone(), [rows, 1]), &device);
+        let corners = self.table.val().select(0, idx) * w; // [points*levels*8, F]
+        corners
+            .reshape([lookup.points * self.levels, 8, self.features])
+            .sum_dim(1) // [points*levels, 1, F]
+            .reshape([lookup.points, self.levels * self.features])
+    }
+}
+
+/// Width of [`positional_encoding`] of `dims`-vectors with `frequencies` octaves.
+pub fn pe_dim(dims: usize, frequencies: usize) -> usize {
+    dims * (1 + 2 * frequencies)
+}
+
+/// NeRF positional encoding `[x, sin(2^k pi x), cos(2^k pi x)]_{k<L}` of each row.
+///
+/// # Shapes
+/// `values`: `[rows, dims]` flattened; returns `[rows, pe_dim(dims, frequencies)]` flattened.
+pub fn positional_encoding(values: &[f32], dims: usize, frequencies: usize) -> Vec<f32> {
+    let width = pe_dim(dims, frequencies);
+    let rows = values.len() / dims;
+    let mut out = vec![0f32; rows * width];
+    out.par_chunks_mut(width)
+        .zip(values.par_chunks(dims))
+        .for_each(|(o, v)| {
+            o[..dims].copy_from_slice(v);
+            for k in 0..frequencies {
+                let scale = std::f32::consts::PI * (1u32 << k) as f32;
+                for (a, &x) in v.iter().enumerate() {
+                    let (s, c) = (x * scale).sin_cos();
+                    o[dims + (2 * k) * dims + a] = s;
+                    o[dims + (2 * k + 1) * dims + a] = c;
+                }
+            }
+        });
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn trilinear_weights_sum_to_one_and_rows_stay_in_their_level() {
+        let cfg = GridConfig::default();
+        let pts = [
+            0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.3, 0.71, 0.5, -2.0, 3.0, 0.999,
+        ];
+        let lu = grid_lookup(&cfg, &pts);
+        for p in 0..4 {
+            for l in 0..cfg.levels {
+                let s: f32 = (0..8)
+                    .map(|c| lu.weights[(p * cfg.levels + l) * 8 + c])
+                    .sum();
+                assert!((s - 1.0).abs() < 1e-5, "point {p} level {l}: {s}");
+                for c in 0..8 {
+                    let row = lu.indices[(p * cfg.levels + l) * 8 + c] as usize;
+                    assert_eq!(row / cfg.table_size(), l);
+                }
+            }
+        }
+        // Coarsest level is dense: a vertex has the analytic row.
+        assert!((cfg.resolution(0) as u64 + 1).pow(3) <= cfg.table_size() as u64);
+        assert_eq!(lu.indices[0], 0);
+    }
+
+    #[test]
+    fn grid_interpolates_a_linear_table_exactly_on_dense_levels() {
+        // With a table holding the x coordinate of each dense vertex, trilinear interpolation
+        // returns x itself.
+        let cfg = GridConfig {
+            levels: 1,
+            features_per_level: 1,
+            log2_table_size: 12,
+            base_resolution: 8,
+            max_resolution: 8,
+            init_scale: 0.0,
+        };
+        let device = crate::field::Backend::default().device();
+        let n = 9usize;
+        let mut values = vec![0f32; cfg.table_size()];
+        for z in 0..n {
+            for y in 0..n {
+                for x in 0..n {
+                    values[x + n * (y + n * z)] = x as f32 / 8.0;
+                }
+            }
+        }
+        let mut grid = HashGrid::new(&cfg, &mut SplitMix64::new(1), &device);
+        grid.table = Param::from_tensor(Tensor::from_data(
+            TensorData::new(values, [cfg.table_size(), 1]),
+            &device,
+        ));
+        let pts = [0.37f32, 0.2, 0.9, 0.81, 0.5, 0.1];
+        let out = grid
+            .forward(&grid_lookup(&cfg, &pts))
+            .into_data()
+            .try_to_vec::<f32>()
+            .unwrap();
+        assert!(
+            (out[0] - 0.37).abs() < 1e-5 && (out[1] - 0.81).abs() < 1e-5,
+            "{out:?}"
+        );
+    }
+
+    #[test]
+    fn positional_encoding_layout() {
+        let e = positional_encoding(&[0.5, 0.25, 0.0], 3, 2);
+        assert_eq!(e.len(), pe_dim(3, 2));
+        assert_eq!(&e[..3], &[0.5, 0.25, 0.0]);
+        assert!((e[3] - (std::f32::consts::PI * 0.5).sin()).abs() < 1e-6);
+        assert!((e[6] - (std::f32::consts::PI * 0.5).cos()).abs() < 1e-6);
+        assert!((e[9 + 1] - (std::f32::consts::PI * 2.0 * 0.25).sin()).abs() < 1e-6);
+    }
+}
