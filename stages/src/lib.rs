@@ -13,6 +13,7 @@ pub mod labels;
 pub mod metrics;
 pub mod pngio;
 pub mod rays;
+pub mod render;
 pub mod report;
 pub mod sampling;
 pub mod scene;
@@ -20,6 +21,7 @@ pub mod schema;
 pub mod tables;
 pub mod testing;
 pub mod train;
+pub mod train_stage;
 
 use std::{collections::BTreeMap, fmt, path::Path, path::PathBuf};
 
@@ -219,6 +221,8 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = vec![
         Box::new(scene::SyntheticScene),
         Box::new(rays::Intersect),
+        Box::new(train_stage::Train),
+        Box::new(render::Render),
         Box::new(evaluate::Evaluate),
         Box::new(report::Report),
     ];

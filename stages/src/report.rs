@@ -191,8 +191,19 @@ fn training_svg(log: &RecordBatch) -> Result<Option<String>> {
         }
         let vals: Vec<f64> = match col.data_type() {
             DataType::Float32 => {
-                let a = col.as_any().downcast_ref::<arrow::array::Float32Array>().unwrap();
-                (0..a.len()).map(|i| if a.is_null(i) { f64::NAN } else { a.value(i) as f64 }).collect()
+                let a = col
+                    .as_any()
+                    .downcast_ref::<arrow::array::Float32Array>()
+                    .unwrap();
+                (0..a.len())
+                    .map(|i| {
+                        if a.is_null(i) {
+                            f64::NAN
+                        } else {
+                            a.value(i) as f64
+                        }
+                    })
+                    .collect()
             }
             DataType::Float64 => f64_col(log, "train_log", name)?.values().to_vec(),
             _ => continue,

@@ -178,7 +178,11 @@ impl RaySet {
         rays_t: &arrow::record_batch::RecordBatch,
     ) -> Result<RaySet> {
         // Primitive classes ascending, then sky last (the fields' convention).
-        let mut classes: Vec<u8> = prims.iter().map(|p| p.label).filter(|&l| l != labels::SKY).collect();
+        let mut classes: Vec<u8> = prims
+            .iter()
+            .map(|p| p.label)
+            .filter(|&l| l != labels::SKY)
+            .collect();
         classes.sort_unstable();
         classes.dedup();
         classes.push(labels::SKY);
@@ -219,6 +223,8 @@ impl RaySet {
                 hi[k] = hi[k].max(b.max[k]);
             }
         }
+        set.classes = classes.clone();
+        set.things = things.clone();
         set.bounds_min = lo.map(|v| v as f32);
         set.bounds_max = hi.map(|v| v as f32);
         set.offsets.push(0);

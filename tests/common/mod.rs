@@ -14,6 +14,31 @@ pub use pipe::runner::Outcome;
 
 pub const PIPE: &str = env!("CARGO_BIN_EXE_pipe");
 
+/// The whole pipeline on a scene small enough for tests (6 frames of 88x23, 40 iterations).
+pub const TINY_PIPELINE: &str = "
+stages:
+  scene:
+    uses: synthetic_scene
+    params: {frames: 6, eval_every: 2, scale: 0.0625}
+  rays:
+    uses: intersect
+    inputs: {scene: scene}
+  train:
+    uses: train
+    inputs: {scene: scene, rays: rays}
+    params:
+      train: {iterations: 40, rays_per_batch: 256}
+  render:
+    uses: render
+    inputs: {scene: scene, rays: rays, train: train}
+  evaluate:
+    uses: evaluate
+    inputs: {scene: scene, render: render}
+  report:
+    uses: report
+    inputs: {scene: scene, evaluate: evaluate, render: render, train: train}
+";
+
 pub struct Workspace {
     dir: tempfile::TempDir,
 }

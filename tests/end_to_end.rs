@@ -1,0 +1,85 @@
+//! The whole pipeline on a tiny synthetic scene: scene -> rays -> train -> render -> evaluate
+//! -> report, then the exported files: metrics.json must agree with the PNGs it was computed
+//! from (recomputed here from the files alone), and the report must exist.
+
+mod common;
+
+use std::{fs, path::Path};
+
+use common::{Outcome, Workspace};
+
+fn gray8(path: &Path) -> Vec<u8> {
+    image::open(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .into_luma8()
+        .into_raw()
+}
+
+#[test]
+fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
+    let ws = Workspace::new(common::TINY_PIPELINE);
+    ws.run_ok(&[]);
+    assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Ran));
+
+    let (code, out, err) = ws.cmd("export", &["evaluate", "--to", "eval"]);
+    assert_eq!(code, 0, "{out}{err}");
+    let (code, out, err) = ws.cmd("export", &["render", "--to", "render"]);
+    assert_eq!(code, 0, "{out}{err}");
+    let (code, out, err) = ws.cmd("export", &["report", "--to", "report"]);
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(
+        fs::metadata(ws.dir().join("report/report.html"))
+            .unwrap()
+            .len()
+            > 10_000
+    );
+    assert!(fs::read_to_string(ws.dir().join("report/REPORT.md"))
+        .unwrap()
+        .contains("| Panoptic NeRF (ours) |"));
+
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&fs::read(ws.dir().join("eval/metrics.json")).unwrap()).unwrap();
+    for m in [
+        "panoptic_nerf",
+        "fixed_field",
+        "pseudo_labels",
+        "first_primitive",
+    ] {
+        assert!(metrics[m]["miou"].is_number(), "{m} has no mIoU: {metrics}");
+        assert!(
+            metrics[m]["class_iou"]["road"].is_number(),
+            "{m}: {metrics}"
+        );
+    }
+
+    // Recompute our mIoU from the exported PNGs alone.
+    let gt_dir = ws.dir().join("eval/gt/semantic");
+    let mut files: Vec<_> = fs::read_dir(&gt_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    files.sort();
+    assert!(!files.is_empty());
+    let mut conf = stages::metrics::ConfusionMatrix::new(stages::labels::PAPER_CLASSES).unwrap();
+    for f in &files {
+        let gt = gray8(&gt_dir.join(f));
+        let ours = gray8(&ws.dir().join("render/semantic").join(f));
+        conf.add(&gt, &ours).unwrap();
+        for sub in ["semantic_rgb", "instance", "panoptic_rgb", "depth", "rgb"] {
+            assert!(
+                ws.dir().join("render").join(sub).join(f).exists(),
+                "render/{sub}/{f:?}"
+            );
+        }
+    }
+    let from_files = conf.miou().unwrap();
+    let reported = metrics["panoptic_nerf"]["miou"].as_f64().unwrap();
+    assert!(
+        (from_files - reported).abs() < 1e-9,
+        "metrics.json says {reported}, the PNGs give {from_files}"
+    );
+
+    // A second run is all cache hits.
+    ws.run_ok(&[]);
+    assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
+}
