@@ -16,6 +16,7 @@ pub mod report;
 pub mod sampling;
 pub mod scene;
 pub mod schema;
+pub mod stereo;
 pub mod tables;
 pub mod testing;
 
@@ -205,6 +206,8 @@ impl<T: TypedStage> Stage for T {
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = vec![
         Box::new(scene::SyntheticScene),
+        Box::new(scene::kitti360::Kitti360Scene),
+        Box::new(stereo::StereoDepth),
         Box::new(rays::Intersect),
         Box::new(evaluate::Evaluate),
         Box::new(report::Report),
