@@ -167,7 +167,7 @@ pub fn perspective(path: &Path, text: &str) -> Result<Perspective> {
         None => DMat3::IDENTITY,
     };
     let size = |v: f64, what: &str| -> Result<u32> {
-        if v.fract() != 0.0 || v < 1.0 || v > 1.0e5 {
+        if v.fract() != 0.0 || !(1.0..=1.0e5).contains(&v) {
             return Err(err(
                 path,
                 format!("`S_rect_00`: {what} {v} is not a positive whole number of pixels"),

@@ -258,11 +258,7 @@ fn every_malformed_file_of_the_corpus_is_an_error_naming_file_and_element() {
     assert_eq!(n, cases.len(), "every corpus file has a case");
     for (bad, target, needles) in cases {
         let (root, p) = fixture(&format!("bad-{bad}"));
-        std::fs::copy(
-            corpus.join(bad),
-            root.join(target.replace("seq_a", "seq_a")),
-        )
-        .unwrap();
+        std::fs::copy(corpus.join(bad), root.join(target)).unwrap();
         assert_error(&p, target, needles);
         std::fs::remove_dir_all(root).unwrap();
     }
