@@ -18,6 +18,7 @@ pub mod report;
 pub mod sampling;
 pub mod scene;
 pub mod schema;
+pub mod stereo;
 pub mod tables;
 pub mod testing;
 pub mod train;
@@ -220,6 +221,8 @@ impl<T: TypedStage> Stage for T {
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = vec![
         Box::new(scene::SyntheticScene),
+        Box::new(scene::kitti360::Kitti360Scene),
+        Box::new(stereo::StereoDepth),
         Box::new(rays::Intersect),
         Box::new(train_stage::Train),
         Box::new(render::Render),

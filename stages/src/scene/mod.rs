@@ -18,6 +18,7 @@
 //! full KITTI-360 size (`scale` 1, 1408x376) about 0.7 s per image.
 
 pub mod depth;
+pub mod kitti360;
 pub mod kitti360_export;
 pub mod layout;
 pub mod noise;

@@ -1,0 +1,499 @@
+//! Readers of the KITTI-360 file formats: `cam0_to_world.txt`, `perspective.txt`,
+//! `calib_cam_to_velo.txt`, the `data_3d_bboxes` OpenCV FileStorage XML, PNGs (RGB, 8-bit
+//! labels, 16-bit instances and depth) and velodyne `.bin` scans.
+//!
+//! Every error is a [`StageError::Input`] whose message starts with the file's path, then names
+//! the element (line number and key, XML element and child, pixel) and the problem. Nothing
+//! here panics on malformed input.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use glam::{DAffine3, DMat3, DVec3};
+
+use crate::geometry::io::affine_from_row_major;
+use crate::{Result, StageError};
+
+/// An input error naming `path` and what is wrong with it.
+pub fn err(path: &Path, what: impl std::fmt::Display) -> StageError {
+    StageError::Input(format!("{}: {what}", path.display()))
+}
+
+/// The whole file as text; a missing or unreadable file is an error naming it.
+pub fn read_text(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))
+}
+
+fn parse_f64(path: &Path, at: &str, tok: &str) -> Result<f64> {
+    let v: f64 = tok
+        .parse()
+        .map_err(|_| err(path, format!("{at}: `{tok}` is not a number")))?;
+    if !v.is_finite() {
+        return Err(err(path, format!("{at}: non-finite value `{tok}`")));
+    }
+    Ok(v)
+}
+
+/// Checks the upper 3x3 of a pose is a rotation (orthonormal, determinant +1).
+fn check_rotation(path: &Path, at: &str, m: &DMat3) -> Result<()> {
+    let d = m.transpose() * *m - DMat3::IDENTITY;
+    let off = d.x_axis.abs().max_element() + d.y_axis.abs().max_element();
+    let off = off + d.z_axis.abs().max_element();
+    if off > 1e-3 || m.determinant() < 0.0 {
+        return Err(err(
+            path,
+            format!("{at}: the upper 3x3 is not a rotation (not orthonormal with determinant +1)"),
+        ));
+    }
+    Ok(())
+}
+
+/// `cam0_to_world.txt`: per line a frame number and a row-major 4x4 (rectified left camera ->
+/// world). Frames need not be contiguous; a frame listed twice is an error. A 3x4 line (12
+/// numbers) is accepted with the bottom row implied.
+pub fn poses(path: &Path, text: &str) -> Result<BTreeMap<u32, DAffine3>> {
+    let mut out = BTreeMap::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() {
+            continue;
+        }
+        let at = format!("line {}", i + 1);
+        let mut toks = line.split_whitespace();
+        let ftok = toks.next().unwrap_or_default();
+        let frame: u32 = ftok.parse().map_err(|_| {
+            err(
+                path,
+                format!("{at}: frame number `{ftok}` is not an integer"),
+            )
+        })?;
+        let at = format!("line {} (frame {frame})", i + 1);
+        let mut v = toks
+            .map(|t| parse_f64(path, &at, t))
+            .collect::<Result<Vec<f64>>>()?;
+        if v.len() == 12 {
+            v.extend([0.0, 0.0, 0.0, 1.0]);
+        }
+        if v.len() != 16 {
+            return Err(err(
+                path,
+                format!(
+                    "{at}: expected the frame number and 16 numbers (a 4x4 matrix), found {}",
+                    v.len()
+                ),
+            ));
+        }
+        let m = affine_from_row_major(&v).map_err(|e| err(path, format!("{at}: {e}")))?;
+        check_rotation(path, &at, &m.matrix3)?;
+        if out.insert(frame, m).is_some() {
+            return Err(err(path, format!("{at}: frame {frame} is listed twice")));
+        }
+    }
+    if out.is_empty() {
+        return Err(err(path, "no poses in the file"));
+    }
+    Ok(out)
+}
+
+/// `KEY: numbers` lines (perspective.txt, calib_cam_to_velo.txt without key).
+fn keyed(path: &Path, text: &str) -> Result<BTreeMap<String, (usize, Vec<f64>)>> {
+    let mut out = BTreeMap::new();
+    for (i, line) in text.lines().enumerate() {
+        let Some((key, rest)) = line.split_once(':') else {
+            continue;
+        };
+        let key = key.trim().to_string();
+        let at = format!("line {} `{key}`", i + 1);
+        let v = rest
+            .split_whitespace()
+            .map(|t| parse_f64(path, &at, t))
+            .collect::<Result<Vec<f64>>>();
+        // Lines we do not use (calib_time, ...) may hold anything.
+        match v {
+            Ok(v) => {
+                out.insert(key, (i + 1, v));
+            }
+            Err(e) if ["P_rect_00", "P_rect_01", "R_rect_00", "S_rect_00"].contains(&&*key) => {
+                return Err(e)
+            }
+            Err(_) => {}
+        }
+    }
+    Ok(out)
+}
+
+/// The rectified stereo calibration of `perspective.txt`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Perspective {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    /// Principal point in KITTI/OpenCV pixel coordinates (pixel centres at integers).
+    pub cx_file: f64,
+    pub cy_file: f64,
+    /// Baseline from `P_rect_01[0,3] = -fx * b`, metres.
+    pub baseline: f64,
+    /// `R_rect_00` (unrectified -> rectified left camera), identity when absent.
+    pub r_rect: DMat3,
+}
+
+/// Parses `perspective.txt` (`P_rect_00`, `P_rect_01`, `S_rect_00`, optional `R_rect_00`).
+pub fn perspective(path: &Path, text: &str) -> Result<Perspective> {
+    let k = keyed(path, text)?;
+    let get = |key: &str, n: usize| -> Result<&Vec<f64>> {
+        let (line, v) = k
+            .get(key)
+            .ok_or_else(|| err(path, format!("no `{key}` line")))?;
+        if v.len() != n {
+            return Err(err(
+                path,
+                format!(
+                    "line {line} `{key}`: expected {n} numbers, found {}",
+                    v.len()
+                ),
+            ));
+        }
+        Ok(v)
+    };
+    let p0 = get("P_rect_00", 12)?;
+    let p1 = get("P_rect_01", 12)?;
+    let s = get("S_rect_00", 2)?;
+    let r_rect = match k.get("R_rect_00") {
+        Some(_) => {
+            let r = get("R_rect_00", 9)?;
+            DMat3::from_cols_array(&[r[0], r[3], r[6], r[1], r[4], r[7], r[2], r[5], r[8]])
+        }
+        None => DMat3::IDENTITY,
+    };
+    let size = |v: f64, what: &str| -> Result<u32> {
+        if v.fract() != 0.0 || !(1.0..=1.0e5).contains(&v) {
+            return Err(err(
+                path,
+                format!("`S_rect_00`: {what} {v} is not a positive whole number of pixels"),
+            ));
+        }
+        Ok(v as u32)
+    };
+    let (width, height) = (size(s[0], "width")?, size(s[1], "height")?);
+    let (fx, fy) = (p0[0], p0[5]);
+    if fx <= 0.0 || fy <= 0.0 {
+        return Err(err(
+            path,
+            format!("`P_rect_00`: focal lengths must be positive, found fx {fx} fy {fy}"),
+        ));
+    }
+    let shape_ok = |p: &[f64]| {
+        p[1] == 0.0 && p[4] == 0.0 && p[8] == 0.0 && p[9] == 0.0 && p[10] == 1.0 && p[11] == 0.0
+    };
+    if !shape_ok(p0) || p0[3] != 0.0 || p0[7] != 0.0 {
+        return Err(err(
+            path,
+            "`P_rect_00`: not a rectified left projection [fx 0 cx 0; 0 fy cy 0; 0 0 1 0]",
+        ));
+    }
+    let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(1.0);
+    if !shape_ok(p1) || !same(p1[0], fx) || !same(p1[5], fy) || !same(p1[2], p0[2]) {
+        return Err(err(
+            path,
+            "`P_rect_01`: the right projection must share P_rect_00's intrinsics (fx, fy, cx, cy) \
+             with only P_rect_01[0,3] = -fx * baseline differing",
+        ));
+    }
+    if !same(p1[6], p0[6]) || p1[7] != 0.0 {
+        return Err(err(
+            path,
+            "`P_rect_01`: cy and P[1,3] must match a rectified pair",
+        ));
+    }
+    let baseline = -p1[3] / fx;
+    if baseline <= 0.0 {
+        return Err(err(
+            path,
+            format!(
+                "`P_rect_01`: P[0,3] = {} gives baseline {baseline} m; a right camera needs a \
+                 negative P[0,3] (= -fx * baseline)",
+                p1[3]
+            ),
+        ));
+    }
+    Ok(Perspective {
+        width,
+        height,
+        fx,
+        fy,
+        cx_file: p0[2],
+        cy_file: p0[6],
+        baseline,
+        r_rect,
+    })
+}
+
+/// `calib_cam_to_velo.txt`: one line of 12 numbers, the 3x4 unrectified camera 0 -> velodyne.
+pub fn cam_to_velo(path: &Path, text: &str) -> Result<DAffine3> {
+    let v = text
+        .split_whitespace()
+        .map(|t| parse_f64(path, "matrix", t))
+        .collect::<Result<Vec<f64>>>()?;
+    if v.len() != 12 {
+        return Err(err(
+            path,
+            format!("expected 12 numbers (a 3x4 matrix), found {}", v.len()),
+        ));
+    }
+    let mut m = v;
+    m.extend([0.0, 0.0, 0.0, 1.0]);
+    affine_from_row_major(&m).map_err(|e| err(path, e))
+}
+
+/// One object of the `data_3d_bboxes` XML, as written (world frame, label not yet mapped).
+#[derive(Clone, Debug)]
+pub struct XmlObject {
+    /// The element name (`object12`), for messages.
+    pub element: String,
+    pub semantic_id: i64,
+    pub instance_id: i64,
+    pub timestamp: i64,
+    /// Local -> world (upper 3x3 = R * diag(size)).
+    pub transform: DAffine3,
+    pub vertices: Vec<DVec3>,
+    pub faces: Vec<[u32; 3]>,
+}
+
+/// An OpenCV FileStorage matrix: `rows`, `cols`, `dt`, `data` (whitespace-separated, row-major,
+/// may wrap lines).
+fn matrix(path: &Path, obj: &str, node: roxmltree::Node) -> Result<(usize, usize, Vec<f64>)> {
+    let name = node.tag_name().name();
+    let at = format!("<{obj}>/<{name}>");
+    let child = |tag: &str| -> Result<&str> {
+        node.children()
+            .find(|c| c.has_tag_name(tag))
+            .map(|c| c.text().unwrap_or("").trim())
+            .ok_or_else(|| err(path, format!("{at}: missing <{tag}>")))
+    };
+    let dim = |tag: &str| -> Result<usize> {
+        let t = child(tag)?;
+        t.parse()
+            .map_err(|_| err(path, format!("{at}: <{tag}> `{t}` is not a whole number")))
+    };
+    let (rows, cols) = (dim("rows")?, dim("cols")?);
+    let data = child("data")?;
+    let v = data
+        .split_whitespace()
+        .map(|t| parse_f64(path, &at, t))
+        .collect::<Result<Vec<f64>>>()?;
+    if v.len() != rows * cols {
+        return Err(err(
+            path,
+            format!(
+                "{at}: {rows} x {cols} matrix needs {} values, <data> has {}",
+                rows * cols,
+                v.len()
+            ),
+        ));
+    }
+    Ok((rows, cols, v))
+}
+
+fn int_child(path: &Path, obj: &str, node: roxmltree::Node, tag: &str) -> Result<Option<i64>> {
+    let Some(c) = node.children().find(|c| c.has_tag_name(tag)) else {
+        return Ok(None);
+    };
+    let t = c.text().unwrap_or("").trim();
+    t.parse()
+        .map(Some)
+        .map_err(|_| err(path, format!("<{obj}>/<{tag}>: `{t}` is not an integer")))
+}
+
+/// Parses the `data_3d_bboxes` XML: every child element of `<opencv_storage>` is one object.
+pub fn bboxes(path: &Path, text: &str) -> Result<Vec<XmlObject>> {
+    let doc = roxmltree::Document::parse(text)
+        .map_err(|e| err(path, format!("not well-formed XML: {e}")))?;
+    let root = doc.root_element();
+    if !root.has_tag_name("opencv_storage") {
+        return Err(err(
+            path,
+            format!(
+                "root element is <{}>, expected <opencv_storage>",
+                root.tag_name().name()
+            ),
+        ));
+    }
+    let mut out = Vec::new();
+    for node in root.children().filter(|n| n.is_element()) {
+        let obj = node.tag_name().name().to_string();
+        let find = |tag: &str| {
+            node.children()
+                .find(|c| c.has_tag_name(tag))
+                .ok_or_else(|| err(path, format!("<{obj}>: missing <{tag}>")))
+        };
+        let need = |tag: &str| -> Result<i64> {
+            int_child(path, &obj, node, tag)?
+                .ok_or_else(|| err(path, format!("<{obj}>: missing <{tag}>")))
+        };
+        let semantic_id = need("semanticId")?;
+        let instance_id = need("instanceId")?;
+        let timestamp = int_child(path, &obj, node, "timestamp")?.unwrap_or(-1);
+        let (r, c, t) = matrix(path, &obj, find("transform")?)?;
+        if (r, c) != (4, 4) {
+            return Err(err(
+                path,
+                format!("<{obj}>/<transform>: expected a 4 x 4 matrix, found {r} x {c}"),
+            ));
+        }
+        let transform = affine_from_row_major(&t)
+            .map_err(|e| err(path, format!("<{obj}>/<transform>: {e}")))?;
+        let (vr, vc, vd) = matrix(path, &obj, find("vertices")?)?;
+        if vc != 3 || vr == 0 {
+            return Err(err(
+                path,
+                format!("<{obj}>/<vertices>: expected an N x 3 matrix, found {vr} x {vc}"),
+            ));
+        }
+        let (fr, fc, fd) = matrix(path, &obj, find("faces")?)?;
+        if fc != 3 || fr == 0 {
+            return Err(err(
+                path,
+                format!("<{obj}>/<faces>: expected an M x 3 matrix, found {fr} x {fc}"),
+            ));
+        }
+        let mut faces = Vec::with_capacity(fr);
+        for (k, f) in fd.chunks_exact(3).enumerate() {
+            let mut tri = [0u32; 3];
+            for (j, &x) in f.iter().enumerate() {
+                if x.fract() != 0.0 || x < 0.0 || x >= vr as f64 {
+                    return Err(err(
+                        path,
+                        format!(
+                            "<{obj}>/<faces>: face {k} refers to vertex {x}, but there are {vr} \
+                             vertices (0-based)"
+                        ),
+                    ));
+                }
+                tri[j] = x as u32;
+            }
+            faces.push(tri);
+        }
+        out.push(XmlObject {
+            element: obj,
+            semantic_id,
+            instance_id,
+            timestamp,
+            transform,
+            vertices: vd.chunks_exact(3).map(DVec3::from_slice).collect(),
+            faces,
+        });
+    }
+    Ok(out)
+}
+
+/// Decodes a PNG; a missing, truncated or corrupt file is an error naming it.
+pub fn png(path: &Path) -> Result<image::DynamicImage> {
+    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
+        err(
+            path,
+            format!("not a readable PNG (truncated or corrupt?): {e}"),
+        )
+    })
+}
+
+fn check_size(path: &Path, img: &image::DynamicImage, w: u32, h: u32) -> Result<()> {
+    if (img.width(), img.height()) != (w, h) {
+        return Err(err(
+            path,
+            format!(
+                "image is {}x{}, expected {w}x{h} (S_rect_00 in perspective.txt)",
+                img.width(),
+                img.height()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// An 8-bit colour image as `w*h*3` RGB bytes (grey and RGBA are converted).
+pub fn rgb(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
+    let img = png(path)?;
+    check_size(path, &img, w, h)?;
+    use image::ColorType::*;
+    match img.color() {
+        Rgb8 | Rgba8 | L8 | La8 => Ok(img.into_rgb8().into_raw()),
+        other => Err(err(
+            path,
+            format!("expected an 8-bit colour image, found {other:?}"),
+        )),
+    }
+}
+
+/// An 8-bit single-channel label map of KITTI-360 label ids; unknown ids are errors naming the
+/// pixel.
+pub fn labels(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
+    let img = png(path)?;
+    check_size(path, &img, w, h)?;
+    if img.color() != image::ColorType::L8 {
+        return Err(err(
+            path,
+            format!(
+                "expected an 8-bit single-channel label-id PNG, found {:?}",
+                img.color()
+            ),
+        ));
+    }
+    let v = img.into_luma8().into_raw();
+    if let Some(i) = v.iter().position(|&l| crate::labels::by_id(l).is_none()) {
+        return Err(err(
+            path,
+            format!(
+                "pixel ({}, {}): {} is not a KITTI-360 label id",
+                i % w as usize,
+                i / w as usize,
+                v[i]
+            ),
+        ));
+    }
+    Ok(v)
+}
+
+/// A 16-bit single-channel PNG (instance maps `id*1000 + instance`, depth `metres*256`).
+pub fn gray16(path: &Path, w: u32, h: u32, what: &str) -> Result<Vec<u16>> {
+    let img = png(path)?;
+    check_size(path, &img, w, h)?;
+    if img.color() != image::ColorType::L16 {
+        return Err(err(
+            path,
+            format!(
+                "expected a 16-bit single-channel {what} PNG, found {:?}",
+                img.color()
+            ),
+        ));
+    }
+    Ok(img.into_luma16().into_raw())
+}
+
+/// A velodyne scan: float32 N x 4 (x, y, z, intensity), little-endian.
+pub fn velodyne(path: &Path) -> Result<Vec<DVec3>> {
+    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    if bytes.len() % 16 != 0 {
+        return Err(err(
+            path,
+            format!(
+                "{} bytes is not a whole number of points (16 bytes each: float32 x, y, z, \
+                 intensity); truncated?",
+                bytes.len()
+            ),
+        ));
+    }
+    let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64;
+    bytes
+        .chunks_exact(16)
+        .enumerate()
+        .map(|(i, p)| {
+            let q = DVec3::new(f(&p[0..4]), f(&p[4..8]), f(&p[8..12]));
+            if !q.is_finite() {
+                return Err(err(path, format!("point {i}: non-finite coordinate")));
+            }
+            Ok(q)
+        })
+        .collect()
+}
