@@ -161,7 +161,12 @@ impl RaySet {
         let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
         let images = ImageRows::new(inputs.table("scene", "images")?, "images")?;
         let pseudo = ImageRows::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
-        let stereo = match inputs.optional_table("scene", "stereo_depth")? {
+        // A connected `depth` stage (stereo matching) takes precedence over the scene's own.
+        let depth_table = match inputs.optional_table("depth", "stereo_depth")? {
+            Some(t) => Some(t),
+            None => inputs.optional_table("scene", "stereo_depth")?,
+        };
+        let stereo = match depth_table {
             Some(t) => Some(ImageRows::new(t, "stereo_depth")?),
             None => None,
         };

@@ -135,6 +135,12 @@ impl TypedStage for Train {
             optional: false,
             doc: "the sampling plan",
         },
+        InputSlot {
+            name: "depth",
+            tables: &["stereo_depth"],
+            optional: true,
+            doc: "stereo depth for L_depth (default: the scene's own stereo_depth table)",
+        },
     ];
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
 

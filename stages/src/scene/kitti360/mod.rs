@@ -673,6 +673,10 @@ impl TypedStage for Kitti360Scene {
         load(p, progress)
     }
 
+    fn external_inputs(&self, p: &Kitti360Params) -> Result<Vec<PathBuf>> {
+        input_files(p)
+    }
+
     fn export(&self, _: &Kitti360Params, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         super::preview::write(t, &dir.join("previews"))
     }
