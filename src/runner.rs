@@ -105,6 +105,30 @@ fn show_value(v: &Value) -> String {
     }
 }
 
+/// Appends `param `path` old -> new` for every leaf that differs (nested objects recursively).
+fn diff_params(path: &str, old: &Value, new: &Value, why: &mut Vec<String>) {
+    match (old, new) {
+        (Value::Object(a), Value::Object(b)) => {
+            let names: BTreeSet<&String> = a.keys().chain(b.keys()).collect();
+            for n in names {
+                let p = format!("{path}.{n}");
+                match (a.get(n), b.get(n)) {
+                    (Some(x), Some(y)) => diff_params(&p, x, y, why),
+                    (None, Some(y)) => why.push(format!("param `{p}` added ({})", show_value(y))),
+                    (Some(_), None) => why.push(format!("param `{p}` removed")),
+                    (None, None) => {}
+                }
+            }
+        }
+        (a, b) if a != b => why.push(format!(
+            "param `{path}` {} -> {}",
+            show_value(a),
+            show_value(b)
+        )),
+        _ => {}
+    }
+}
+
 /// Why stage `i` (with current key `key`, or unknown) differs from its last recorded run.
 fn explain(
     p: &Pipeline,
@@ -131,25 +155,7 @@ fn explain(
             s.kind.version()
         ));
     }
-    let empty = serde_json::Map::new();
-    let old = rec.params.as_object().unwrap_or(&empty);
-    let new = s.params.as_object().unwrap_or(&empty);
-    let names: BTreeSet<&String> = old.keys().chain(new.keys()).collect();
-    for n in names {
-        match (old.get(n), new.get(n)) {
-            (Some(a), Some(b)) if a != b => why.push(format!(
-                "param `{}.{n}` {} -> {}",
-                s.name,
-                show_value(a),
-                show_value(b)
-            )),
-            (None, Some(b)) => {
-                why.push(format!("param `{}.{n}` added ({})", s.name, show_value(b)))
-            }
-            (Some(_), None) => why.push(format!("param `{}.{n}` removed", s.name)),
-            _ => {}
-        }
-    }
+    diff_params(&s.name, &rec.params, &s.params, &mut why);
     let slots: BTreeSet<&String> = rec.inputs.keys().chain(inputs.keys()).collect();
     for slot in slots {
         match (rec.inputs.get(slot), inputs.get(slot)) {
