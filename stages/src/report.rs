@@ -280,11 +280,9 @@ struct Maps<'a> {
 
 impl<'a> Maps<'a> {
     fn new(batch: &'a RecordBatch, table: &'static str) -> Result<Self> {
-        let f = tables::get_prim::<UInt32Type>(batch, table, "frame")?;
-        let c = tables::get_prim::<UInt8Type>(batch, table, "camera")?;
         Ok(Maps {
             batch,
-            index: (0..batch.num_rows()).map(|r| ((f[r], c[r]), r)).collect(),
+            index: tables::frame_camera_index(batch, table)?,
             table,
         })
     }

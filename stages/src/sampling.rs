@@ -143,10 +143,8 @@ struct ImageRows<'a> {
 
 impl<'a> ImageRows<'a> {
     fn new(batch: &'a arrow::record_batch::RecordBatch, table: &'static str) -> Result<Self> {
-        let f = tables::get_prim::<UInt32Type>(batch, table, "frame")?;
-        let c = tables::get_prim::<UInt8Type>(batch, table, "camera")?;
         Ok(Self {
-            index: (0..batch.num_rows()).map(|r| ((f[r], c[r]), r)).collect(),
+            index: tables::frame_camera_index(batch, table)?,
             batch,
             table,
         })

@@ -120,6 +120,21 @@ pub fn get_binary<'a>(batch: &'a RecordBatch, table: &str, col: &str) -> Result<
         .ok_or_else(|| type_error(table, col, "binary", c.data_type()))
 }
 
+/// Row of each `(frame, camera)` key of a per-image table (every such table has both columns).
+pub fn frame_camera_index<C: FromIterator<((u32, u8), usize)>>(
+    batch: &RecordBatch,
+    table: &str,
+) -> Result<C> {
+    use arrow::datatypes::{UInt32Type, UInt8Type};
+    let f = get_prim::<UInt32Type>(batch, table, "frame")?;
+    let c = get_prim::<UInt8Type>(batch, table, "camera")?;
+    Ok(f.iter()
+        .zip(c)
+        .enumerate()
+        .map(|(r, (&f, &c))| ((f, c), r))
+        .collect())
+}
+
 /// A `list<T>` column: per-row slices of one flat value buffer.
 pub struct ListColumn<'a, N> {
     offsets: &'a [i32],
