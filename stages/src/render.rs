@@ -179,8 +179,8 @@ impl TypedStage for Render {
                 .collect();
             let mut sky_rgb = [0f32; 3];
             for &p in &sky_ids {
-                for k in 0..3 {
-                    sky_rgb[k] += set.rgb[im.first_ray + p][k] / sky_ids.len() as f32;
+                for (acc, v) in sky_rgb.iter_mut().zip(set.rgb[im.first_ray + p]) {
+                    *acc += v / sky_ids.len() as f32;
                 }
             }
             for &p in &sky_ids {
