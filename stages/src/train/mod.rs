@@ -79,6 +79,9 @@ pub struct TrainConfig {
     pub losses: LossWeights,
     /// sigma_th of the L_3D point mask (paper: 0.1).
     pub sigma_threshold: f32,
+    /// Apply the ray mask u(r) to L_learned2D (false: every labelled ray counts; the ablation
+    /// "without u(r)").
+    pub ray_mask: bool,
     /// Adam learning rate (paper: 5e-4).
     pub lr: f64,
     /// The learning rate decays exponentially to `lr * lr_final_factor` at the last iteration
@@ -106,6 +109,7 @@ impl Default for TrainConfig {
             field: FieldConfig::default(),
             losses: LossWeights::default(),
             sigma_threshold: 0.1,
+            ray_mask: true,
             lr: 5e-4,
             lr_final_factor: 1.0,
             grad_clip_norm: 1.0,

@@ -107,7 +107,7 @@ struct BatchTensors {
 }
 
 impl BatchTensors {
-    fn new(batch: &RayBatch, device: &Device) -> Self {
+    fn new(batch: &RayBatch, use_ray_mask: bool, device: &Device) -> Self {
         let s = &batch.samples;
         let t = &batch.targets;
         let (r, n, c) = (s.rays, s.samples, s.classes);
@@ -126,7 +126,7 @@ impl BatchTensors {
         let learned: Vec<f32> = labelled
             .iter()
             .zip(&t.ray_mask)
-            .map(|(a, b)| a * b)
+            .map(|(a, b)| if use_ray_mask { a * b } else { *a })
             .collect();
         let valid: Vec<f32> = t.depth_valid.iter().map(|&v| v as u8 as f32).collect();
         let depth: Vec<f32> = t
@@ -163,7 +163,7 @@ fn losses(
     let device = field.trunk.layers[0].weight.device();
     let s = &batch.samples;
     let (r, n, c) = (s.rays, s.samples, s.classes);
-    let bt = BatchTensors::new(batch, &device);
+    let bt = BatchTensors::new(batch, config.ray_mask, &device);
     let mut heads = vec![FieldHead::Density];
     if terms.contains(&LossTerm::Rgb) {
         heads.push(FieldHead::Rgb);
