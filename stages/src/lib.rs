@@ -8,6 +8,7 @@
 pub mod compose;
 pub mod evaluate;
 pub mod field;
+pub mod fused;
 pub mod geometry;
 pub mod labels;
 pub mod metrics;

@@ -113,6 +113,60 @@ pub struct GridLookup {
 
 const HASH_PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
 
+/// Per level: cells per axis, and whether the level is dense (every vertex has its own row).
+pub fn level_info(config: &GridConfig) -> Vec<(u32, bool)> {
+    (0..config.levels)
+        .map(|l| {
+            let n = config.resolution(l);
+            let vertices = (n as u64 + 1).pow(3);
+            (n, vertices <= config.table_size() as u64)
+        })
+        .collect()
+}
+
+/// Corner rows (of the stacked table) and trilinear weights of one point `p` in `[0,1]^3`
+/// (clamped): `idx`, `w` have `levels * 8` entries, level-major.
+pub fn lookup_point(
+    config: &GridConfig,
+    levels: &[(u32, bool)],
+    p: &[f32],
+    idx: &mut [i32],
+    w: &mut [f32],
+) {
+    let table = config.table_size();
+    for (l, &(n, dense)) in levels.iter().enumerate() {
+        let mut cell = [0u32; 3];
+        let mut frac = [0f32; 3];
+        for a in 0..3 {
+            let x = p[a].clamp(0.0, 1.0) * n as f32;
+            let c = (x.floor() as u32).min(n - 1);
+            cell[a] = c;
+            frac[a] = (x - c as f32).clamp(0.0, 1.0);
+        }
+        let offset = (l * table) as u32;
+        for corner in 0..8 {
+            let mut weight = 1.0f32;
+            let mut v = [0u32; 3];
+            for a in 0..3 {
+                let bit = (corner >> a) & 1;
+                v[a] = cell[a] + bit as u32;
+                weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
+            }
+            let row = if dense {
+                let side = n + 1;
+                v[0] + side * (v[1] + side * v[2])
+            } else {
+                (v[0].wrapping_mul(HASH_PRIMES[0])
+                    ^ v[1].wrapping_mul(HASH_PRIMES[1])
+                    ^ v[2].wrapping_mul(HASH_PRIMES[2]))
+                    & (table as u32 - 1)
+            };
+            idx[l * 8 + corner] = (offset + row) as i32;
+            w[l * 8 + corner] = weight;
+        }
+    }
+}
+
 /// Computes the corner rows and trilinear weights of `unit_positions` (in `[0,1]^3`, clamped).
 ///
 /// # Shapes
@@ -120,55 +174,15 @@ const HASH_PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
 pub fn grid_lookup(config: &GridConfig, unit_positions: &[f32]) -> GridLookup {
     assert_eq!(unit_positions.len() % 3, 0, "positions must be [points, 3]");
     let points = unit_positions.len() / 3;
-    let levels = config.levels;
-    let table = config.table_size();
-    let per_point = levels * 8;
+    let per_point = config.levels * 8;
     let mut indices = vec![0i32; points * per_point];
     let mut weights = vec![0f32; points * per_point];
-    let level_info: Vec<(u32, bool)> = (0..levels)
-        .map(|l| {
-            let n = config.resolution(l);
-            let vertices = (n as u64 + 1).pow(3);
-            (n, vertices <= table as u64)
-        })
-        .collect();
+    let levels = level_info(config);
     indices
         .par_chunks_mut(per_point)
         .zip(weights.par_chunks_mut(per_point))
         .zip(unit_positions.par_chunks(3))
-        .for_each(|((idx, w), p)| {
-            for (l, &(n, dense)) in level_info.iter().enumerate() {
-                let mut cell = [0u32; 3];
-                let mut frac = [0f32; 3];
-                for a in 0..3 {
-                    let x = p[a].clamp(0.0, 1.0) * n as f32;
-                    let c = (x.floor() as u32).min(n - 1);
-                    cell[a] = c;
-                    frac[a] = (x - c as f32).clamp(0.0, 1.0);
-                }
-                let offset = (l * table) as u32;
-                for corner in 0..8 {
-                    let mut weight = 1.0f32;
-                    let mut v = [0u32; 3];
-                    for a in 0..3 {
-                        let bit = (corner >> a) & 1;
-                        v[a] = cell[a] + bit as u32;
-                        weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
-                    }
-                    let row = if dense {
-                        let side = n + 1;
-                        v[0] + side * (v[1] + side * v[2])
-                    } else {
-                        (v[0].wrapping_mul(HASH_PRIMES[0])
-                            ^ v[1].wrapping_mul(HASH_PRIMES[1])
-                            ^ v[2].wrapping_mul(HASH_PRIMES[2]))
-                            & (table as u32 - 1)
-                    };
-                    idx[l * 8 + corner] = (offset + row) as i32;
-                    w[l * 8 + corner] = weight;
-                }
-            }
-        });
+        .for_each(|((idx, w), p)| lookup_point(config, &levels, p, idx, w));
     GridLookup {
         points,
         indices,

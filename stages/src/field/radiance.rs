@@ -147,6 +147,17 @@ impl FieldSpec {
         Ok(())
     }
 
+    /// Scene coordinate `x` on `axis` mapped to `[0, 1]` over the AABB (clamped; 0.5 if not
+    /// finite).
+    pub fn unit_coordinate(&self, axis: usize, x: f32) -> f32 {
+        let u = (x - self.aabb_min[axis]) / (self.aabb_max[axis] - self.aabb_min[axis]);
+        if u.is_finite() {
+            u.clamp(0.0, 1.0)
+        } else {
+            0.5
+        }
+    }
+
     /// A freshly initialised field on `device` (use an autodiff device to train).
     pub fn init(&self, device: &Device) -> RadianceField {
         RadianceField::new(self.clone(), device)
@@ -261,12 +272,7 @@ impl RadianceField {
         let mut unit = Vec::with_capacity(positions.len());
         for p in positions.chunks_exact(3) {
             for (a, &x) in p.iter().enumerate() {
-                let u = (x - spec.aabb_min[a]) / (spec.aabb_max[a] - spec.aabb_min[a]);
-                unit.push(if u.is_finite() {
-                    u.clamp(0.0, 1.0)
-                } else {
-                    0.5
-                });
+                unit.push(spec.unit_coordinate(a, x));
             }
         }
         let positions = match spec.config.encoding {

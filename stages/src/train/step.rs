@@ -279,6 +279,70 @@ fn grad_norm(field: &RadianceField, grads: &GradientsParams) -> Result<f32, Stri
     Ok(total.sqrt() as f32)
 }
 
+/// Collects every parameter's gradient as a named row (zeros where a parameter got none).
+#[cfg(test)]
+struct CollectGrads<'a> {
+    grads: &'a GradientsParams,
+    path: Vec<String>,
+    out: Vec<crate::field::NamedWeight>,
+}
+
+#[cfg(test)]
+impl ModuleVisitor for CollectGrads<'_> {
+    fn enter_module(&mut self, name: &str, _: &str) {
+        self.path.push(name.to_string());
+    }
+    fn exit_module(&mut self, _: &str, _: &str) {
+        self.path.pop();
+    }
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let shape = param.val().dims().to_vec();
+        let values = match self.grads.get::<D>(param.id) {
+            Some(g) => g.into_data().try_to_vec::<f32>().expect("f32"),
+            None => vec![0.0; shape.iter().product()],
+        };
+        self.out.push(crate::field::NamedWeight {
+            name: self.path.join("."),
+            shape,
+            values,
+        });
+    }
+}
+
+/// The burn reference: unweighted loss values and the gradient of their weighted sum, per
+/// named parameter (`field` must live on an autodiff device).
+#[cfg(test)]
+pub(crate) fn reference_gradients(
+    field: &RadianceField,
+    batch: &RayBatch,
+    config: &TrainConfig,
+) -> (Vec<(LossTerm, f32)>, Vec<crate::field::NamedWeight>) {
+    let terms = config.losses.enabled();
+    let values = losses(field, batch, config, &terms);
+    let read: Vec<(LossTerm, f32)> = values
+        .iter()
+        .map(|(t, v)| {
+            (
+                *t,
+                v.clone().detach().into_data().try_to_vec::<f32>().expect("f32")[0],
+            )
+        })
+        .collect();
+    let total = values
+        .into_iter()
+        .map(|(t, v)| v.mul_scalar(config.losses.get(t)))
+        .reduce(|a, b| a + b)
+        .expect("a term");
+    let grads = GradientsParams::from_grads(total.backward(), field);
+    let mut c = CollectGrads {
+        grads: &grads,
+        path: Vec::new(),
+        out: Vec::new(),
+    };
+    field.visit(&mut c);
+    (read, c.out)
+}
+
 /// Holds the field being trained and its optimiser state.
 pub struct Trainer {
     field: Option<RadianceField>,
