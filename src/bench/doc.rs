@@ -105,7 +105,11 @@ impl Doc {
                         esc(alt),
                         base64::engine::general_purpose::STANDARD.encode(bytes)
                     )),
-                    None => out.push_str(&format!("<p><img alt=\"{}\" src=\"{}\"></p>\n", esc(alt), esc(f))),
+                    None => out.push_str(&format!(
+                        "<p><img alt=\"{}\" src=\"{}\"></p>\n",
+                        esc(alt),
+                        esc(f)
+                    )),
                 },
                 Block::Code(t) => out.push_str(&format!("<pre>{}</pre>\n", esc(t))),
             }
@@ -153,7 +157,11 @@ mod tests {
         d.table(&["x", "y"], vec![vec!["1".into(), "a|b".into()]]);
         d.image("p.png", "plot");
         let md = d.markdown();
-        assert!(md.contains("# Title\n") && md.contains("| 1 | a\\|b |") && md.contains("![plot](p.png)"));
+        assert!(
+            md.contains("# Title\n")
+                && md.contains("| 1 | a\\|b |")
+                && md.contains("![plot](p.png)")
+        );
         let html = d.html("t", &BTreeMap::from([("p.png".to_string(), vec![1, 2, 3])]));
         assert!(html.contains("<code>b</code> <b>c</b> &lt;d&gt;"), "{html}");
         assert!(html.contains("data:image/png;base64,AQID"));

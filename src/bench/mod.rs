@@ -164,14 +164,22 @@ pub fn run(opts: &BenchOptions) -> Result<BenchOutcome> {
     let base_fresh = base_is_fresh(&base, &cache_dir);
     if base_fresh {
         timings.push(machine::time_command(
-            &format!("no-op `pipe run` ({}, {} stages)", opts.base_file.display(), base.stages.len()),
+            &format!(
+                "no-op `pipe run` ({}, {} stages)",
+                opts.base_file.display(),
+                base.stages.len()
+            ),
             &["run", "--no-wait"],
             &opts.base_file,
             reps,
         ));
     }
     timings.push(machine::time_command(
-        &format!("`pipe status` ({}, {} stages)", opts.base_file.display(), base.stages.len()),
+        &format!(
+            "`pipe status` ({}, {} stages)",
+            opts.base_file.display(),
+            base.stages.len()
+        ),
         &["status"],
         &opts.base_file,
         reps,
@@ -188,7 +196,10 @@ pub fn run(opts: &BenchOptions) -> Result<BenchOutcome> {
         .collect();
     for sc in &opts.suite.scenes {
         let panels = plots::time_vs_error(&rows, &sc.name, &variants, &BASELINES);
-        let png = plots::render_png(&format!("{}: error against training time", sc.name), &panels)?;
+        let png = plots::render_png(
+            &format!("{}: error against training time", sc.name),
+            &panels,
+        )?;
         let name = format!("time_vs_error_{}.png", sc.name);
         std::fs::write(opts.out.join(&name), &png)?;
         files.push(opts.out.join(&name));
@@ -248,8 +259,10 @@ fn base_is_fresh(base: &config::Pipeline, cache: &Path) -> bool {
         return false;
     };
     let store = Store::open_existing(cache);
-    runner::resolve(base, &dag, &store, false)
-        .is_ok_and(|res| res.iter().all(|r| matches!(r.state, runner::State::Fresh(_))))
+    runner::resolve(base, &dag, &store, false).is_ok_and(|res| {
+        res.iter()
+            .all(|r| matches!(r.state, runner::State::Fresh(_)))
+    })
 }
 
 struct ReportInput<'a> {
@@ -296,8 +309,18 @@ fn report_doc(i: &ReportInput) -> Doc {
         d.p(&s.description);
     }
     d.p("**Error figures are reproducible**: the same suite and build on the same machine give the same metrics (scenes and training are seeded, and stages are cached by content). **Times vary** from run to run and machine to machine; a stage reused from the cache reports the wall time of the run that computed it.");
-    let ran = i.report.stages.iter().filter(|r| r.outcome == Outcome::Ran).count();
-    let cached = i.report.stages.iter().filter(|r| r.outcome == Outcome::Cached).count();
+    let ran = i
+        .report
+        .stages
+        .iter()
+        .filter(|r| r.outcome == Outcome::Ran)
+        .count();
+    let cached = i
+        .report
+        .stages
+        .iter()
+        .filter(|r| r.outcome == Outcome::Cached)
+        .count();
     d.p(format!(
         "This bench took {:.1} s: {ran} stages ran, {cached} came from the cache.",
         i.wall_s
@@ -344,11 +367,23 @@ fn report_doc(i: &ReportInput) -> Doc {
     d.p("Ours (`panoptic_nerf`) per variant and training budget, against the training stage's wall time; the 2D baselines do not train and are flat lines. mIoU, Acc, PQ and delta<1.25 in %, depth RMSE in metres.");
     for sc in &s.scenes {
         d.h(3, format!("Scene `{}`", sc.name));
-        d.image(format!("time_vs_error_{}.png", sc.name), format!("{}: mIoU, PQ and depth RMSE against training time", sc.name));
+        d.image(
+            format!("time_vs_error_{}.png", sc.name),
+            format!("{}: mIoU, PQ and depth RMSE against training time", sc.name),
+        );
         let mut rows = Vec::new();
         for run in i.plan.runs.iter().filter(|r| r.scene == sc.name) {
             let sem = variant(&run.variant).is_none_or(|v| v.semantics);
-            let g = |metric: &str| value(i.rows, &run.scene, &run.variant, run.budget, "panoptic_nerf", metric);
+            let g = |metric: &str| {
+                value(
+                    i.rows,
+                    &run.scene,
+                    &run.variant,
+                    run.budget,
+                    "panoptic_nerf",
+                    metric,
+                )
+            };
             let gs = |metric: &str| if sem { g(metric) } else { None };
             let wall = i.manifests[&run.instances[&i.plan.train_role]].wall_s;
             rows.push(vec![
@@ -362,13 +397,33 @@ fn report_doc(i: &ReportInput) -> Doc {
                 f(g("depth_delta_1_25"), 100.0, 1),
             ]);
         }
-        d.table(&["variant", "budget", "train wall s", "mIoU", "Acc", "PQ", "depth RMSE", "delta<1.25"], rows);
+        d.table(
+            &[
+                "variant",
+                "budget",
+                "train wall s",
+                "mIoU",
+                "Acc",
+                "PQ",
+                "depth RMSE",
+                "delta<1.25",
+            ],
+            rows,
+        );
         if let Some(run) = i.plan.runs.iter().find(|r| r.scene == sc.name) {
             let rows = ["pseudo_labels", "first_primitive", "fixed_field"]
                 .iter()
                 .map(|&method| {
-                    let g = |metric: &str| value(i.rows, &run.scene, &run.variant, run.budget, method, metric);
-                    vec![method.to_string(), f(g("miou"), 100.0, 1), f(g("acc"), 100.0, 1), f(g("pq"), 100.0, 1), f(g("mc"), 100.0, 1)]
+                    let g = |metric: &str| {
+                        value(i.rows, &run.scene, &run.variant, run.budget, method, metric)
+                    };
+                    vec![
+                        method.to_string(),
+                        f(g("miou"), 100.0, 1),
+                        f(g("acc"), 100.0, 1),
+                        f(g("pq"), 100.0, 1),
+                        f(g("mc"), 100.0, 1),
+                    ]
                 })
                 .collect();
             d.p("Baselines (independent of training; `fixed_field` is the fixed-field rendering of the first run):");
@@ -381,10 +436,21 @@ fn report_doc(i: &ReportInput) -> Doc {
     for sc in &s.scenes {
         let mut rows = Vec::new();
         for v in &s.variants {
-            let Some(run) = i.plan.runs.iter().find(|r| r.scene == sc.name && r.variant == v.name && r.budget == s.ablation_budget) else {
+            let Some(run) = i.plan.runs.iter().find(|r| {
+                r.scene == sc.name && r.variant == v.name && r.budget == s.ablation_budget
+            }) else {
                 continue;
             };
-            let g = |metric: &str| value(i.rows, &run.scene, &run.variant, run.budget, "panoptic_nerf", metric);
+            let g = |metric: &str| {
+                value(
+                    i.rows,
+                    &run.scene,
+                    &run.variant,
+                    run.budget,
+                    "panoptic_nerf",
+                    metric,
+                )
+            };
             let gs = |metric: &str| if v.semantics { g(metric) } else { None };
             rows.push(vec![
                 v.label.clone(),
@@ -392,16 +458,31 @@ fn report_doc(i: &ReportInput) -> Doc {
                 f(g("depth_delta_1_25"), 100.0, 1),
                 f(gs("miou"), 100.0, 1),
                 f(gs("acc"), 100.0, 1),
-                PAPER_ABLATION.iter().find(|(n, _)| *n == v.name).map_or("".into(), |(_, p)| p.to_string()),
+                PAPER_ABLATION
+                    .iter()
+                    .find(|(n, _)| *n == v.name)
+                    .map_or("".into(), |(_, p)| p.to_string()),
             ]);
         }
         if !rows.is_empty() {
             d.h(3, format!("Scene `{}`", sc.name));
-            d.table(&["variant", "depth RMSE (m)", "delta<1.25 (%)", "mIoU (%)", "Acc (%)", "paper"], rows);
+            d.table(
+                &[
+                    "variant",
+                    "depth RMSE (m)",
+                    "delta<1.25 (%)",
+                    "mIoU (%)",
+                    "Acc (%)",
+                    "paper",
+                ],
+                rows,
+            );
         }
     }
     for (label, why) in &i.plan.skipped {
-        d.p(format!("Variant **{label}** was skipped: this build cannot express it ({why})."));
+        d.p(format!(
+            "Variant **{label}** was skipped: this build cannot express it ({why})."
+        ));
     }
 
     d.h(2, "Stages: wall time and peak memory");
@@ -423,24 +504,59 @@ fn report_doc(i: &ReportInput) -> Doc {
             ]
         })
         .collect();
-    d.table(&["stage", "kind", "this bench", "wall", "CPU", "peak RSS", "runner"], rows);
+    d.table(
+        &[
+            "stage",
+            "kind",
+            "this bench",
+            "wall",
+            "CPU",
+            "peak RSS",
+            "runner",
+        ],
+        rows,
+    );
 
     d.h(2, "Runner overhead");
     d.p(format!("Each command spawned {} times after a warm-up, with everything cached (a no-op); times include process start.", s.overhead_repeats));
     let mut rows: Vec<Vec<String>> = i
         .timings
         .iter()
-        .map(|t| vec![t.what.clone(), format!("{:.1} ms", t.median_s * 1e3), format!("{:.1} ms", t.min_s * 1e3), if t.ok { "ok".into() } else { "FAILED".into() }])
+        .map(|t| {
+            vec![
+                t.what.clone(),
+                format!("{:.1} ms", t.median_s * 1e3),
+                format!("{:.1} ms", t.min_s * 1e3),
+                if t.ok { "ok".into() } else { "FAILED".into() },
+            ]
+        })
         .collect();
-    let ran: Vec<f64> = i.report.stages.iter().filter(|r| r.outcome == Outcome::Ran).map(|r| r.overhead_s).collect();
+    let ran: Vec<f64> = i
+        .report
+        .stages
+        .iter()
+        .filter(|r| r.outcome == Outcome::Ran)
+        .map(|r| r.overhead_s)
+        .collect();
     if !ran.is_empty() {
         let max = ran.iter().cloned().fold(0.0, f64::max);
         let mean = ran.iter().sum::<f64>() / ran.len() as f64;
-        rows.push(vec![format!("runner time per re-run stage beyond its own work ({} stages)", ran.len()), format!("{:.1} ms (mean)", mean * 1e3), format!("{:.1} ms (max)", max * 1e3), "".into()]);
+        rows.push(vec![
+            format!(
+                "runner time per re-run stage beyond its own work ({} stages)",
+                ran.len()
+            ),
+            format!("{:.1} ms (mean)", mean * 1e3),
+            format!("{:.1} ms (max)", max * 1e3),
+            "".into(),
+        ]);
     }
     d.table(&["what", "median", "min / max", ""], rows);
     if !i.base_fresh {
-        d.p(format!("`{}` was not up to date, so no no-op `pipe run` of it was timed (run it once first).", i.opts.base_file.display()));
+        d.p(format!(
+            "`{}` was not up to date, so no no-op `pipe run` of it was timed (run it once first).",
+            i.opts.base_file.display()
+        ));
     }
 
     d.h(2, "Files");

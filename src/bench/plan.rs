@@ -112,22 +112,25 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
     let mut cur = kind.default_params();
     let mut walked = Vec::new();
     for p in parts {
-        let next = match &cur {
-            Value::Object(o) => o.get(p).cloned().ok_or_else(|| {
-                format!(
+        let next =
+            match &cur {
+                Value::Object(o) => {
+                    o.get(p).cloned().ok_or_else(|| {
+                        format!(
                     "unknown parameter `{}` of stage `{stage}` (kind `{}`; known there: {})",
                     walked.iter().chain([&p]).cloned().collect::<Vec<_>>().join("."),
                     s.kind,
                     o.keys().cloned().collect::<Vec<_>>().join(", ")
                 )
-            })?,
-            _ => {
-                return Err(format!(
-                    "parameter `{}` of stage `{stage}` is not a mapping",
-                    walked.join(".")
-                ))
-            }
-        };
+                    })?
+                }
+                _ => {
+                    return Err(format!(
+                        "parameter `{}` of stage `{stage}` is not a mapping",
+                        walked.join(".")
+                    ))
+                }
+            };
         walked.push(p);
         cur = next;
     }
@@ -420,8 +423,14 @@ mod tests {
         let s = suite("  - name: v\n    set: {train.train.losses.nope: 0}\n");
         let e = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap_err();
         let msg = e.to_string();
-        assert!(msg.starts_with("s.yaml:6:11: `variants.0.set.train.train.losses.nope`"), "{msg}");
-        assert!(msg.contains("unknown parameter `train.losses.nope`"), "{msg}");
+        assert!(
+            msg.starts_with("s.yaml:6:11: `variants.0.set.train.train.losses.nope`"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains("unknown parameter `train.losses.nope`"),
+            "{msg}"
+        );
         let s = suite("  - {name: v, optional: true, set: {train.train.nope: 0}}\n  - {name: w}\n");
         let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
         assert_eq!(p.skipped.len(), 1);

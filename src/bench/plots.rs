@@ -110,7 +110,11 @@ impl DrawingBackend for Canvas<'_> {
         let trans = style.transform();
         let (cw, ch) = self.get_size();
         for (n, c) in text.chars().enumerate() {
-            let g = font8x8::legacy::BASIC_LEGACY[if c.is_ascii() { c as usize } else { b'?' as usize }];
+            let g = font8x8::legacy::BASIC_LEGACY[if c.is_ascii() {
+                c as usize
+            } else {
+                b'?' as usize
+            }];
             for (row, bits) in g.iter().enumerate() {
                 for col in 0..8 {
                     if bits & (1 << col) == 0 {
@@ -140,6 +144,8 @@ pub struct Series {
     pub points: Vec<(f64, f64)>,
     /// Drawn across the whole time axis at this value.
     pub flat: bool,
+    /// Index into the palette (stable across panels).
+    pub color: usize,
 }
 
 /// One panel: a metric against training wall time.
@@ -148,7 +154,9 @@ pub struct Panel {
     pub series: Vec<Series>,
 }
 
-const COLORS: [RGBColor; 8] = [
+const COLORS: [RGBColor; 10] = [
+    RGBColor(60, 60, 60),
+    RGBColor(170, 170, 170),
     RGBColor(31, 119, 180),
     RGBColor(255, 127, 14),
     RGBColor(44, 160, 44),
@@ -202,8 +210,8 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
                 .label_style(("sans-serif", 12).into_font())
                 .draw()
                 .map_err(draw_err)?;
-            for (k, s) in panel.series.iter().enumerate() {
-                let color = COLORS[k % COLORS.len()];
+            for s in &panel.series {
+                let color = COLORS[s.color % COLORS.len()];
                 let line: Vec<(f64, f64)> = if s.flat {
                     let y = s.points.first().map_or(0.0, |p| p.1);
                     vec![(0.0, y), (x1 * 1.08, y)]
@@ -218,11 +226,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
                     .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
                 if !s.flat {
                     chart
-                        .draw_series(
-                            s.points
-                                .iter()
-                                .map(|&p| Circle::new(p, 3, color.filled())),
-                        )
+                        .draw_series(s.points.iter().map(|&p| Circle::new(p, 3, color.filled())))
                         .map_err(draw_err)?;
                 }
             }
@@ -243,8 +247,9 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
     Ok(png)
 }
 
-/// The time-vs-error panels of one scene: mIoU, PQ, depth RMSE; `semantic(variant)` says
-/// whether a variant's semantic metrics mean anything.
+/// The time-vs-error panels of one scene: mIoU and PQ in %, depth RMSE in metres. `variants`
+/// are (name, label, whether its semantic metrics mean anything); `baselines` (method, label)
+/// are drawn flat in grey.
 pub fn time_vs_error(
     rows: &[Row],
     scene: &str,
@@ -252,15 +257,15 @@ pub fn time_vs_error(
     baselines: &[(&str, &str)],
 ) -> Vec<Panel> {
     let metrics = [
-        ("miou", "mIoU"),
-        ("pq", "PQ"),
-        ("depth_rmse", "depth RMSE, m"),
+        ("miou", "mIoU, %", 100.0),
+        ("pq", "PQ, %", 100.0),
+        ("depth_rmse", "depth RMSE, m", 1.0),
     ];
     metrics
         .iter()
-        .map(|&(metric, title)| {
+        .map(|&(metric, title, scale)| {
             let mut series = Vec::new();
-            for (name, label, semantic) in variants {
+            for (k, (name, label, semantic)) in variants.iter().enumerate() {
                 if !semantic && metric != "depth_rmse" {
                     continue;
                 }
@@ -272,7 +277,7 @@ pub fn time_vs_error(
                             && r.method == "panoptic_nerf"
                             && r.metric == metric
                     })
-                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v)))
+                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * scale)))
                     .collect();
                 points.sort_by(|a, b| a.0.total_cmp(&b.0));
                 if !points.is_empty() {
@@ -280,10 +285,11 @@ pub fn time_vs_error(
                         label: label.clone(),
                         points,
                         flat: false,
+                        color: k + 2,
                     });
                 }
             }
-            for &(method, label) in baselines {
+            for (k, &(method, label)) in baselines.iter().enumerate() {
                 let v = rows
                     .iter()
                     .find(|r| r.scene == scene && r.method == method && r.metric == metric)
@@ -291,8 +297,9 @@ pub fn time_vs_error(
                 if let Some(v) = v {
                     series.push(Series {
                         label: label.to_string(),
-                        points: vec![(0.0, v)],
+                        points: vec![(0.0, v * scale)],
                         flat: true,
+                        color: k,
                     });
                 }
             }

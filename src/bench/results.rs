@@ -86,14 +86,25 @@ pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>> {
             let method = format!("{STAGE_PREFIX}{r}");
             rows.push(row(&method, "wall_s", Some(s.wall_s)));
             rows.push(row(&method, "cpu_s", Some(s.cpu_s)));
-            rows.push(row(&method, "peak_rss_bytes", Some(s.peak_rss_bytes as f64)));
+            rows.push(row(
+                &method,
+                "peak_rss_bytes",
+                Some(s.peak_rss_bytes as f64),
+            ));
         }
     }
     Ok(rows)
 }
 
 /// The value of one metric of one run, if present and not null.
-pub fn value(rows: &[Row], scene: &str, variant: &str, budget: u64, method: &str, metric: &str) -> Option<f64> {
+pub fn value(
+    rows: &[Row],
+    scene: &str,
+    variant: &str,
+    budget: u64,
+    method: &str,
+    metric: &str,
+) -> Option<f64> {
     rows.iter()
         .find(|r| {
             r.scene == scene

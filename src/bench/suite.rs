@@ -226,11 +226,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         }
     };
     if raw.scenes.is_empty() {
-        return Err(err(
-            locs.key("scenes"),
-            Some("scenes"),
-            "no scenes".into(),
-        ));
+        return Err(err(locs.key("scenes"), Some("scenes"), "no scenes".into()));
     }
     if raw.variants.is_empty() {
         return Err(err(
@@ -311,10 +307,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         return Err(err(
             bp_loc,
             Some("budget_param"),
-            format!(
-                "`{}`: expected STAGE.PARAM[.FIELD...]",
-                raw.budget_param
-            ),
+            format!("`{}`: expected STAGE.PARAM[.FIELD...]", raw.budget_param),
         ));
     }
     let ablation_budget = raw
@@ -368,7 +361,11 @@ mod tests {
             "name: x\nscenes: [{name: a}]\nbudgets: [1]\nvariants:\n  - name: v\n    set: {nodot: 1}\n",
         )
         .unwrap_err();
-        assert!(e.to_string().starts_with("s.yaml:6:11: `variants.0.set.nodot`"), "{e}");
+        assert!(
+            e.to_string()
+                .starts_with("s.yaml:6:11: `variants.0.set.nodot`"),
+            "{e}"
+        );
         assert!(load("no-such-suite").unwrap().is_none());
     }
 }
