@@ -57,8 +57,8 @@ pub const RUN_REPORT_FILE: &str = "run-report.json";
 pub const RESULTS_FILE: &str = "results.parquet";
 
 const BASELINES: [(&str, &str); 2] = [
-    ("pseudo_labels", "pseudo labels (2D input)"),
-    ("first_primitive", "first-primitive projection"),
+    ("pseudo_labels", "pseudo labels"),
+    ("first_primitive", "first primitive"),
 ];
 
 /// The paper's ablation on one KITTI-360 scene (REFERENCE.md): depth RMSE, delta, mIoU.
@@ -364,7 +364,7 @@ fn report_doc(i: &ReportInput) -> Doc {
 
     let variant = |name: &str| s.variants.iter().find(|v| v.name == name);
     d.h(2, "Time against error");
-    d.p("Ours (`panoptic_nerf`) per variant and training budget, against the training stage's wall time; the 2D baselines do not train and are flat lines. mIoU, Acc, PQ and delta<1.25 in %, depth RMSE in metres.");
+    d.p("Ours (`panoptic_nerf`) per variant and training budget, against the training stage's wall time. The plots draw the variants run at several budgets; the 2D baselines (the pseudo labels given as input, and the class of the first primitive each ray hits) do not train and are flat lines. mIoU, Acc, PQ and delta<1.25 in %, depth RMSE in metres.");
     for sc in &s.scenes {
         d.h(3, format!("Scene `{}`", sc.name));
         d.image(
@@ -486,7 +486,7 @@ fn report_doc(i: &ReportInput) -> Doc {
     }
 
     d.h(2, "Stages: wall time and peak memory");
-    d.p("Per stage instance: from its cache entry (the run that computed it), and what this bench did with it. `runner` is the runner's own time on the stage in this bench (key, look-up, loading inputs, hashing and writing outputs).");
+    d.p("Per stage instance: from its cache entry (the run that computed it), and what this bench did with it. `runner` is the runner's own time on the stage in this bench (key, look-up, loading inputs, hashing and writing outputs). Peak RSS is that of the `pipe` process while the stage ran, so it includes the tables the runner keeps for later stages.");
     let rows = i
         .report
         .stages

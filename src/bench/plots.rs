@@ -16,8 +16,10 @@ struct Canvas<'a>(BitMapBackend<'a>);
 
 type CanvasError = DrawingErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
 
+/// Glyph magnification for a font size. Sizes are chosen so plotters' own width estimate
+/// (0.7 em per character) matches the 8 px glyphs: 18 for 8 px text, 28 for 16 px titles.
 fn glyph_scale(size: f64) -> i32 {
-    if size >= 20.0 {
+    if size >= 24.0 {
         2
     } else {
         1
@@ -180,7 +182,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
         let root = Canvas(BitMapBackend::with_buffer(&mut buf, (w, h))).into_drawing_area();
         root.fill(&WHITE).map_err(draw_err)?;
         let root = root
-            .titled(title, ("sans-serif", 20).into_font())
+            .titled(title, ("sans-serif", 28).into_font())
             .map_err(draw_err)?;
         let areas = root.split_evenly((1, panels.len().max(1)));
         for (panel, area) in panels.iter().zip(&areas) {
@@ -196,7 +198,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
             }
             let pad = ((y1 - y0) * 0.1).max(1e-3);
             let mut chart = ChartBuilder::on(area)
-                .caption(&panel.title, ("sans-serif", 14).into_font())
+                .caption(&panel.title, ("sans-serif", 18).into_font())
                 .margin(8)
                 .x_label_area_size(28)
                 .y_label_area_size(52)
@@ -207,7 +209,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
                 .x_desc("training wall time, s")
                 .x_labels(5)
                 .y_labels(6)
-                .label_style(("sans-serif", 12).into_font())
+                .label_style(("sans-serif", 18).into_font())
                 .draw()
                 .map_err(draw_err)?;
             for s in &panel.series {
@@ -234,7 +236,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
                 .configure_series_labels()
                 .background_style(WHITE.mix(0.8))
                 .border_style(BLACK)
-                .label_font(("sans-serif", 12).into_font())
+                .label_font(("sans-serif", 18).into_font())
                 .position(SeriesLabelPosition::UpperRight)
                 .draw()
                 .map_err(draw_err)?;
@@ -261,6 +263,14 @@ pub fn time_vs_error(
         ("pq", "PQ, %", 100.0),
         ("depth_rmse", "depth RMSE, m", 1.0),
     ];
+    let any_curve = variants.iter().any(|(name, ..)| {
+        let budgets: std::collections::BTreeSet<u64> = rows
+            .iter()
+            .filter(|r| r.scene == scene && &r.variant == name)
+            .map(|r| r.budget)
+            .collect();
+        budgets.len() >= 2
+    });
     metrics
         .iter()
         .map(|&(metric, title, scale)| {
@@ -280,7 +290,8 @@ pub fn time_vs_error(
                     .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * scale)))
                     .collect();
                 points.sort_by(|a, b| a.0.total_cmp(&b.0));
-                if !points.is_empty() {
+                // Variants run at one budget only belong to the ablation table, not here.
+                if points.len() >= 2 || (!points.is_empty() && !any_curve) {
                     series.push(Series {
                         label: label.clone(),
                         points,
