@@ -476,12 +476,7 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
         jobs,
     };
     let done = bench::run(&opts)?;
-    let ran = done
-        .report
-        .stages
-        .iter()
-        .filter(|r| r.outcome == Outcome::Ran)
-        .count();
+    let ran = bench::count(&done.report, Outcome::Ran);
     println!(
         "bench `{}`: {} stages ({ran} ran, {} cached), {} result rows, {}",
         opts.suite.name,

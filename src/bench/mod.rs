@@ -278,6 +278,30 @@ struct ReportInput<'a> {
     wall_s: f64,
 }
 
+/// How many stages of a run ended with `outcome`.
+pub fn count(report: &RunReport, outcome: Outcome) -> usize {
+    report
+        .stages
+        .iter()
+        .filter(|r| r.outcome == outcome)
+        .count()
+}
+
+/// Ours' `metric` in `run`; none for a semantic metric of a variant without semantics.
+fn ours(rows: &[Row], run: &plan::Run, semantics: bool, metric: &str) -> Option<f64> {
+    if !semantics && !metric.starts_with("depth") {
+        return None;
+    }
+    value(
+        rows,
+        &run.scene,
+        &run.variant,
+        run.budget,
+        "panoptic_nerf",
+        metric,
+    )
+}
+
 fn f(v: Option<f64>, scale: f64, digits: usize) -> String {
     v.map_or("—".into(), |v| format!("{:.*}", digits, v * scale))
 }
@@ -309,18 +333,10 @@ fn report_doc(i: &ReportInput) -> Doc {
         d.p(&s.description);
     }
     d.p("**Error figures are reproducible**: the same suite and build on the same machine give the same metrics (scenes and training are seeded, and stages are cached by content). **Times vary** from run to run and machine to machine; a stage reused from the cache reports the wall time of the run that computed it.");
-    let ran = i
-        .report
-        .stages
-        .iter()
-        .filter(|r| r.outcome == Outcome::Ran)
-        .count();
-    let cached = i
-        .report
-        .stages
-        .iter()
-        .filter(|r| r.outcome == Outcome::Cached)
-        .count();
+    let (ran, cached) = (
+        count(i.report, Outcome::Ran),
+        count(i.report, Outcome::Cached),
+    );
     d.p(format!(
         "This bench took {:.1} s: {ran} stages ran, {cached} came from the cache.",
         i.wall_s
@@ -374,25 +390,15 @@ fn report_doc(i: &ReportInput) -> Doc {
         let mut rows = Vec::new();
         for run in i.plan.runs.iter().filter(|r| r.scene == sc.name) {
             let sem = variant(&run.variant).is_none_or(|v| v.semantics);
-            let g = |metric: &str| {
-                value(
-                    i.rows,
-                    &run.scene,
-                    &run.variant,
-                    run.budget,
-                    "panoptic_nerf",
-                    metric,
-                )
-            };
-            let gs = |metric: &str| if sem { g(metric) } else { None };
+            let g = |metric: &str| ours(i.rows, run, sem, metric);
             let wall = i.manifests[&run.instances[&i.plan.train_role]].wall_s;
             rows.push(vec![
                 variant(&run.variant).map_or(run.variant.clone(), |v| v.label.clone()),
                 run.budget.to_string(),
                 format!("{wall:.1}"),
-                f(gs("miou"), 100.0, 1),
-                f(gs("acc"), 100.0, 1),
-                f(gs("pq"), 100.0, 1),
+                f(g("miou"), 100.0, 1),
+                f(g("acc"), 100.0, 1),
+                f(g("pq"), 100.0, 1),
                 f(g("depth_rmse"), 1.0, 2),
                 f(g("depth_delta_1_25"), 100.0, 1),
             ]);
@@ -441,23 +447,13 @@ fn report_doc(i: &ReportInput) -> Doc {
             }) else {
                 continue;
             };
-            let g = |metric: &str| {
-                value(
-                    i.rows,
-                    &run.scene,
-                    &run.variant,
-                    run.budget,
-                    "panoptic_nerf",
-                    metric,
-                )
-            };
-            let gs = |metric: &str| if v.semantics { g(metric) } else { None };
+            let g = |metric: &str| ours(i.rows, run, v.semantics, metric);
             rows.push(vec![
                 v.label.clone(),
                 f(g("depth_rmse"), 1.0, 2),
                 f(g("depth_delta_1_25"), 100.0, 1),
-                f(gs("miou"), 100.0, 1),
-                f(gs("acc"), 100.0, 1),
+                f(g("miou"), 100.0, 1),
+                f(g("acc"), 100.0, 1),
                 PAPER_ABLATION
                     .iter()
                     .find(|(n, _)| *n == v.name)
