@@ -65,7 +65,7 @@ pub struct Timing {
     pub what: String,
     pub median_s: f64,
     pub min_s: f64,
-    /// Whether every run exited 0 (a `run` also: changed nothing).
+    /// Whether every run exited 0.
     pub ok: bool,
 }
 
