@@ -12,6 +12,7 @@ use arrow::util::display::{ArrayFormatter, FormatOptions};
 use clap::{Args, Parser, Subcommand};
 
 use crate::{
+    bench,
     config::{self, Override, Pipeline},
     dag::Dag,
     runner::{self, Outcome, RunOptions, State},
@@ -145,6 +146,21 @@ pub enum Command {
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
+    /// Run a bench suite through the cached pipeline: time against error, the ablation table,
+    /// machine and runner figures (REPORT.md, report.html, results.parquet, PNG plots).
+    Bench {
+        /// A built-in suite (quick, standard) or a suite file (.yaml).
+        #[arg(long, default_value = "quick", value_name = "SUITE")]
+        suite: String,
+        /// Output directory (default: bench-results/SUITE).
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+        /// How many independent stages may run at once.
+        #[arg(long, short = 'j', default_value_t = 1)]
+        jobs: usize,
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
     /// The stage kinds this build knows, with their inputs, outputs and default params.
     Kinds {
         /// Only this kind.
@@ -211,6 +227,12 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             dry_run,
             pipeline,
         } => cmd_gc(&load(&pipeline)?, keep_all_runs, dry_run),
+        Command::Bench {
+            suite,
+            out,
+            jobs,
+            pipeline,
+        } => cmd_bench(&suite, out, jobs, &pipeline),
         Command::Kinds { kind } => cmd_kinds(kind.as_deref()),
     }
 }
@@ -425,6 +447,47 @@ fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
         runner::fmt_bytes(bytes),
         store.keys().len()
     );
+    Ok(0)
+}
+
+fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs) -> Result<i32> {
+    let suite = bench::suite::load(suite)?.ok_or_else(|| {
+        usage(format!(
+            "unknown suite `{suite}` (built in: {}; or give the path of a suite .yaml file)",
+            bench::suite::BUILT_IN
+                .iter()
+                .map(|(n, ..)| *n)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ))
+    })?;
+    let set = args
+        .set
+        .iter()
+        .map(|s| Override::parse(s).map_err(usage))
+        .collect::<Result<Vec<_>>>()?;
+    let out = out.unwrap_or_else(|| PathBuf::from("bench-results").join(&suite.name));
+    let opts = bench::BenchOptions {
+        base_file: args.file.clone(),
+        cache: args.cache.clone(),
+        set,
+        suite,
+        out,
+        jobs,
+    };
+    let done = bench::run(&opts)?;
+    let ran = bench::count(&done.report, Outcome::Ran);
+    println!(
+        "bench `{}`: {} stages ({ran} ran, {} cached), {} result rows, {}",
+        opts.suite.name,
+        done.report.stages.len(),
+        done.report.stages.len() - ran,
+        done.rows.len(),
+        runner::fmt_secs(done.wall_s)
+    );
+    for f in &done.files {
+        println!("  {}", f.display());
+    }
     Ok(0)
 }
 

@@ -123,12 +123,12 @@ impl Override {
 
 /// Key paths (`stages.train.params.lr`) -> where the key stands in the file.
 #[derive(Default)]
-struct Locations {
+pub(crate) struct Locations {
     map: HashMap<String, Loc>,
 }
 
 impl Locations {
-    fn scan(text: &str) -> Locations {
+    pub(crate) fn scan(text: &str) -> Locations {
         struct Recv {
             stack: Vec<Frame>,
             out: HashMap<String, Loc>,
@@ -216,7 +216,7 @@ impl Locations {
     }
 
     /// Where key `path` stands (falling back to its parents).
-    fn key(&self, path: &str) -> Loc {
+    pub(crate) fn key(&self, path: &str) -> Loc {
         let mut p = path.to_string();
         loop {
             if let Some(l) = self.map.get(&p) {
@@ -230,7 +230,7 @@ impl Locations {
     }
 
     /// Where the value of key `path` starts.
-    fn value(&self, path: &str) -> Loc {
+    pub(crate) fn value(&self, path: &str) -> Loc {
         self.map
             .get(&format!("{path}#value"))
             .cloned()

@@ -2,6 +2,7 @@
 //! and runs what is stale, caching outputs as verified Parquet entries. It knows stage kinds only
 //! through the `stages` crate's registry and nothing about NeRFs.
 
+pub mod bench;
 pub mod cli;
 pub mod config;
 pub mod dag;

@@ -1,0 +1,439 @@
+//! Turns a suite and a base pipeline into one ordinary pipeline file: for every (scene,
+//! variant, budget) the base stages up to `evaluate`, with the suite's parameter overrides
+//! applied. Stage instances whose kind, parameters and inputs are equal across runs are
+//! declared once (the scene and rays of a scene are shared by every variant and budget), so the
+//! runner computes each once and the cache shares everything else.
+//!
+//! Instances are named `ROLE-SCENE[-VARIANT][-bBUDGET]`, where ROLE is the base stage's name and
+//! the variant and budget parts appear only when that role depends on them.
+
+use std::{
+    collections::{BTreeMap, BTreeSet},
+    path::Path,
+};
+
+use serde_json::Value;
+use serde_yaml::{Mapping, Value as Yaml};
+
+use super::suite::{Setting, Suite};
+use crate::config::{ConfigError, Loc};
+
+/// One (scene, variant, budget) combination and the stage instances that compute it.
+#[derive(Debug, Clone)]
+pub struct Run {
+    pub scene: String,
+    pub variant: String,
+    pub budget: u64,
+    /// Base stage name (role) -> stage instance name in the generated pipeline.
+    pub instances: BTreeMap<String, String>,
+}
+
+/// The generated pipeline and what it computes.
+#[derive(Debug, Clone)]
+pub struct Plan {
+    /// The pipeline file text (`cache:` absolute).
+    pub yaml: String,
+    pub runs: Vec<Run>,
+    /// The base stages kept (ancestors of `evaluate`, and it), in dependency order.
+    pub roles: Vec<String>,
+    /// The role whose wall time is the training time (the stage `budget_param` names).
+    pub train_role: String,
+    /// The role that writes the `metrics` table.
+    pub eval_role: String,
+    /// Variants left out, with the reason (optional ones this build cannot express).
+    pub skipped: Vec<(String, String)>,
+}
+
+fn cfg_err(suite: &Suite, s: &Setting, msg: String) -> ConfigError {
+    ConfigError {
+        file: suite.file.clone(),
+        loc: s.loc.clone(),
+        stage: None,
+        key: Some(s.path.clone()),
+        message: msg,
+    }
+}
+
+/// The base pipeline's stages: name -> (kind, params, inputs), in file order.
+struct BaseStage {
+    name: String,
+    kind: String,
+    params: Yaml,
+    inputs: BTreeMap<String, String>,
+}
+
+fn base_stages(text: &str) -> Vec<BaseStage> {
+    let doc: Yaml = serde_yaml::from_str(text).unwrap_or(Yaml::Null);
+    let Some(Yaml::Mapping(stages)) = doc.get("stages") else {
+        return Vec::new();
+    };
+    stages
+        .iter()
+        .map(|(k, v)| BaseStage {
+            name: k.as_str().unwrap_or_default().to_string(),
+            kind: v
+                .get("uses")
+                .and_then(Yaml::as_str)
+                .unwrap_or_default()
+                .to_string(),
+            params: v.get("params").cloned().unwrap_or(Yaml::Null),
+            inputs: match v.get("inputs") {
+                Some(Yaml::Mapping(m)) => m
+                    .iter()
+                    .map(|(a, b)| {
+                        (
+                            a.as_str().unwrap_or_default().to_string(),
+                            b.as_str().unwrap_or_default().to_string(),
+                        )
+                    })
+                    .collect(),
+                _ => BTreeMap::new(),
+            },
+        })
+        .collect()
+}
+
+/// Checks that `key` (`stage.param.field...`) names a parameter of the base pipeline; the
+/// error text says what is known at the level that failed.
+fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), String> {
+    let mut parts = key.split('.');
+    let stage = parts.next().unwrap_or_default();
+    let Some(s) = base.iter().find(|s| s.name == stage) else {
+        return Err(format!(
+            "no stage `{stage}` in {} (stages: {})",
+            base_file.display(),
+            base.iter()
+                .map(|s| s.name.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    };
+    let kind = stages::find(&s.kind).ok_or_else(|| format!("unknown kind `{}`", s.kind))?;
+    let mut cur = kind.default_params();
+    let mut walked = Vec::new();
+    for p in parts {
+        let next =
+            match &cur {
+                Value::Object(o) => {
+                    o.get(p).cloned().ok_or_else(|| {
+                        format!(
+                    "unknown parameter `{}` of stage `{stage}` (kind `{}`; known there: {})",
+                    walked.iter().chain([&p]).cloned().collect::<Vec<_>>().join("."),
+                    s.kind,
+                    o.keys().cloned().collect::<Vec<_>>().join(", ")
+                )
+                    })?
+                }
+                _ => {
+                    return Err(format!(
+                        "parameter `{}` of stage `{stage}` is not a mapping",
+                        walked.join(".")
+                    ))
+                }
+            };
+        walked.push(p);
+        cur = next;
+    }
+    Ok(())
+}
+
+/// Sets `path` inside a params mapping, creating mappings on the way.
+fn set_path(params: &mut Yaml, path: &[&str], value: &Yaml) {
+    if !matches!(params, Yaml::Mapping(_)) {
+        *params = Yaml::Mapping(Mapping::new());
+    }
+    let Yaml::Mapping(m) = params else {
+        unreachable!()
+    };
+    let key = Yaml::String(path[0].to_string());
+    if path.len() == 1 {
+        m.insert(key, value.clone());
+    } else {
+        let child = m.entry(key).or_insert(Yaml::Null);
+        set_path(child, &path[1..], value);
+    }
+}
+
+/// Base stages in dependency order, restricted to `evaluate`'s ancestors and itself.
+fn kept_roles(base: &[BaseStage], eval: &str) -> Vec<String> {
+    let mut keep = BTreeSet::new();
+    let mut todo = vec![eval.to_string()];
+    while let Some(n) = todo.pop() {
+        if keep.insert(n.clone()) {
+            if let Some(s) = base.iter().find(|s| s.name == n) {
+                todo.extend(s.inputs.values().cloned());
+            }
+        }
+    }
+    let mut order: Vec<String> = Vec::new();
+    while order.len() < keep.len() {
+        let before = order.len();
+        for s in base {
+            if keep.contains(&s.name)
+                && !order.contains(&s.name)
+                && s.inputs.values().all(|u| order.contains(u))
+            {
+                order.push(s.name.clone());
+            }
+        }
+        if order.len() == before {
+            break; // a cycle: config::load has already refused it
+        }
+    }
+    order
+}
+
+/// Builds the bench pipeline for `suite` from the base pipeline text (`base_file` already
+/// validated by `config::load`), writing entries to `cache_dir`.
+pub fn build(
+    suite: &Suite,
+    base_file: &Path,
+    base_text: &str,
+    extra: &[Setting],
+    cache_dir: &Path,
+) -> Result<Plan, ConfigError> {
+    let base = base_stages(base_text);
+    let evals: Vec<&BaseStage> = base.iter().filter(|s| s.kind == "evaluate").collect();
+    let eval_role = match evals.as_slice() {
+        [one] => one.name.clone(),
+        _ => {
+            return Err(ConfigError {
+                file: base_file.to_path_buf(),
+                loc: Loc::Unknown,
+                stage: None,
+                key: None,
+                message: format!(
+                    "pipe bench needs a pipeline with exactly one `evaluate` stage, found {}",
+                    evals.len()
+                ),
+            })
+        }
+    };
+    let roles = kept_roles(&base, &eval_role);
+    let train_role = suite
+        .budget_param
+        .key
+        .split('.')
+        .next()
+        .unwrap_or_default()
+        .to_string();
+    for s in suite
+        .set
+        .iter()
+        .chain(extra)
+        .chain(suite.scenes.iter().flat_map(|s| &s.set))
+        .chain([&suite.budget_param])
+    {
+        check_key(&base, base_file, &s.key).map_err(|m| cfg_err(suite, s, m))?;
+    }
+    if !roles.contains(&train_role) {
+        return Err(cfg_err(
+            suite,
+            &suite.budget_param,
+            format!("stage `{train_role}` does not feed `{eval_role}`"),
+        ));
+    }
+    let mut skipped = Vec::new();
+    let mut variants = Vec::new();
+    for v in &suite.variants {
+        let bad = v
+            .set
+            .iter()
+            .find_map(|s| check_key(&base, base_file, &s.key).err().map(|m| (s, m)));
+        match bad {
+            Some((s, m)) if v.optional => {
+                skipped.push((v.label.clone(), format!("`{}`: {m}", s.key)));
+            }
+            Some((s, m)) => return Err(cfg_err(suite, s, m)),
+            None => variants.push(v),
+        }
+    }
+
+    // Every run's stages, with overrides applied; identity = kind + params + upstream identity.
+    struct Combo {
+        scene: String,
+        variant: String,
+        budget: u64,
+        params: BTreeMap<String, Yaml>,
+        identity: BTreeMap<String, String>,
+    }
+    let mut combos = Vec::new();
+    for sc in &suite.scenes {
+        for v in variants.iter().filter(|v| v.scenes.contains(&sc.name)) {
+            for &b in &v.budgets {
+                let mut params: BTreeMap<String, Yaml> = base
+                    .iter()
+                    .map(|s| (s.name.clone(), s.params.clone()))
+                    .collect();
+                let budget = Setting {
+                    value: Yaml::Number(b.into()),
+                    ..suite.budget_param.clone()
+                };
+                for s in suite
+                    .set
+                    .iter()
+                    .chain(extra)
+                    .chain(&sc.set)
+                    .chain(&v.set)
+                    .chain([&budget])
+                {
+                    let path: Vec<&str> = s.key.split('.').collect();
+                    let p = params.get_mut(path[0]).expect("key checked");
+                    set_path(p, &path[1..], &s.value);
+                }
+                let mut identity = BTreeMap::new();
+                for r in &roles {
+                    let s = base.iter().find(|s| &s.name == r).expect("role");
+                    let ups: BTreeMap<&String, &String> = s
+                        .inputs
+                        .iter()
+                        .map(|(slot, up)| (slot, &identity[up]))
+                        .collect();
+                    let id = serde_json::to_string(&(
+                        &s.kind,
+                        serde_json::to_value(&params[r]).unwrap_or(Value::Null),
+                        ups,
+                    ))
+                    .unwrap_or_default();
+                    identity.insert(r.clone(), id);
+                }
+                combos.push(Combo {
+                    scene: sc.name.clone(),
+                    variant: v.name.clone(),
+                    budget: b,
+                    params,
+                    identity,
+                });
+            }
+        }
+    }
+
+    // A role depends on the variant (budget) if two runs differing only in it differ there.
+    let depends = |role: &str, on_variant: bool| {
+        combos.iter().any(|a| {
+            combos.iter().any(|b| {
+                a.scene == b.scene
+                    && if on_variant {
+                        a.budget == b.budget && a.variant != b.variant
+                    } else {
+                        a.variant == b.variant && a.budget != b.budget
+                    }
+                    && a.identity[role] != b.identity[role]
+            })
+        })
+    };
+    let by_variant: BTreeMap<&String, bool> = roles.iter().map(|r| (r, depends(r, true))).collect();
+    let by_budget: BTreeMap<&String, bool> = roles.iter().map(|r| (r, depends(r, false))).collect();
+
+    let mut stages_out = Mapping::new();
+    let mut runs = Vec::new();
+    for c in &combos {
+        let mut names = BTreeMap::new();
+        for r in &roles {
+            let mut n = format!("{r}-{}", c.scene);
+            if by_variant[r] {
+                n.push_str(&format!("-{}", c.variant));
+            }
+            if by_budget[r] {
+                n.push_str(&format!("-b{}", c.budget));
+            }
+            names.insert(r.clone(), n.clone());
+            let key = Yaml::String(n);
+            if stages_out.contains_key(&key) {
+                continue;
+            }
+            let s = base.iter().find(|s| &s.name == r).expect("role");
+            let mut decl = Mapping::new();
+            decl.insert("uses".into(), Yaml::String(s.kind.clone()));
+            if !s.inputs.is_empty() {
+                let ins: Mapping = s
+                    .inputs
+                    .iter()
+                    .map(|(slot, up)| (Yaml::String(slot.clone()), Yaml::String(names[up].clone())))
+                    .collect();
+                decl.insert("inputs".into(), Yaml::Mapping(ins));
+            }
+            if !c.params[r].is_null() {
+                decl.insert("params".into(), c.params[r].clone());
+            }
+            stages_out.insert(key, Yaml::Mapping(decl));
+        }
+        runs.push(Run {
+            scene: c.scene.clone(),
+            variant: c.variant.clone(),
+            budget: c.budget,
+            instances: names,
+        });
+    }
+    let mut doc = Mapping::new();
+    doc.insert(
+        "cache".into(),
+        Yaml::String(cache_dir.to_string_lossy().into_owned()),
+    );
+    doc.insert("stages".into(), Yaml::Mapping(stages_out));
+    let body = serde_yaml::to_string(&Yaml::Mapping(doc)).unwrap_or_default();
+    let yaml = format!(
+        "# Generated by `pipe bench --suite {}` from {}: one instance per distinct stage.\n\
+         # `pipe status -f` this file shows what the bench computed; its entries live in `cache`.\n{body}",
+        suite.name,
+        base_file.display()
+    );
+    Ok(Plan {
+        yaml,
+        runs,
+        roles,
+        train_role,
+        eval_role,
+        skipped,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const BASE: &str = "stages:\n  scene:\n    uses: synthetic_scene\n    params: {frames: 6}\n  rays:\n    uses: intersect\n    inputs: {scene: scene}\n  train:\n    uses: train\n    inputs: {scene: scene, rays: rays}\n    params:\n      train: {iterations: 40}\n  render:\n    uses: render\n    inputs: {scene: scene, rays: rays, train: train}\n  evaluate:\n    uses: evaluate\n    inputs: {scene: scene, render: render}\n  report:\n    uses: report\n    inputs: {scene: scene, evaluate: evaluate, render: render, train: train}\n";
+
+    fn suite(variants: &str) -> Suite {
+        super::super::suite::parse(
+            Path::new("s.yaml"),
+            &format!("name: t\nscenes: [{{name: a}}]\nbudgets: [5, 10]\nvariants:\n{variants}"),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn shares_stages_that_do_not_depend_on_variant_or_budget() {
+        let s = suite("  - {name: full}\n  - {name: nod, set: {train.train.losses.depth: 0}, budgets: [10]}\n");
+        let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
+        assert_eq!(p.roles, ["scene", "rays", "train", "render", "evaluate"]);
+        assert_eq!(p.runs.len(), 3);
+        assert_eq!(p.runs[0].instances["scene"], "scene-a");
+        assert_eq!(p.runs[2].instances["train"], "train-a-nod-b10");
+        let pipe = crate::config::parse(Path::new("gen.yaml"), &p.yaml, &[]).unwrap();
+        // scene, rays + 3 x (train, render, evaluate).
+        assert_eq!(pipe.stages.len(), 11);
+        let t = &pipe.stages[pipe.index_of("train-a-nod-b10").unwrap()];
+        assert_eq!(t.params["train"]["losses"]["depth"], 0.0);
+        assert_eq!(t.params["train"]["iterations"], 10);
+    }
+
+    #[test]
+    fn unknown_override_keys_name_the_suite_and_key() {
+        let s = suite("  - name: v\n    set: {train.train.losses.nope: 0}\n");
+        let e = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            msg.starts_with("s.yaml:6:11: `variants.0.set.train.train.losses.nope`"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains("unknown parameter `train.losses.nope`"),
+            "{msg}"
+        );
+        let s = suite("  - {name: v, optional: true, set: {train.train.nope: 0}}\n  - {name: w}\n");
+        let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
+        assert_eq!(p.skipped.len(), 1);
+        assert_eq!(p.runs.len(), 2);
+    }
+}

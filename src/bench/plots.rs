@@ -1,0 +1,323 @@
+//! PNG plots of the bench: per scene, mIoU, PQ and depth RMSE against training wall time, one
+//! line per variant and the 2D baselines as flat lines. Drawn with plotters' bitmap backend;
+//! text comes from the public-domain 8x8 glyphs of `font8x8` (no font files, no font stack).
+
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+use plotters_backend::{
+    text_anchor::{HPos, VPos},
+    BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind,
+};
+
+use super::results::Row;
+
+/// A bitmap backend that draws text itself from 8x8 glyphs.
+struct Canvas<'a>(BitMapBackend<'a>);
+
+type CanvasError = DrawingErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>;
+
+/// Glyph magnification for a font size. Sizes are chosen so plotters' own width estimate
+/// (0.7 em per character) matches the 8 px glyphs: 18 for 8 px text, 28 for 16 px titles.
+fn glyph_scale(size: f64) -> i32 {
+    if size >= 24.0 {
+        2
+    } else {
+        1
+    }
+}
+
+impl DrawingBackend for Canvas<'_> {
+    type ErrorType = <BitMapBackend<'static> as DrawingBackend>::ErrorType;
+
+    fn get_size(&self) -> (u32, u32) {
+        self.0.get_size()
+    }
+    fn ensure_prepared(&mut self) -> Result<(), CanvasError> {
+        self.0.ensure_prepared()
+    }
+    fn present(&mut self) -> Result<(), CanvasError> {
+        self.0.present()
+    }
+    fn draw_pixel(&mut self, p: BackendCoord, c: BackendColor) -> Result<(), CanvasError> {
+        self.0.draw_pixel(p, c)
+    }
+    fn draw_line<S: BackendStyle>(
+        &mut self,
+        a: BackendCoord,
+        b: BackendCoord,
+        s: &S,
+    ) -> Result<(), CanvasError> {
+        self.0.draw_line(a, b, s)
+    }
+    fn draw_rect<S: BackendStyle>(
+        &mut self,
+        a: BackendCoord,
+        b: BackendCoord,
+        s: &S,
+        fill: bool,
+    ) -> Result<(), CanvasError> {
+        self.0.draw_rect(a, b, s, fill)
+    }
+    fn draw_path<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+        &mut self,
+        path: I,
+        s: &S,
+    ) -> Result<(), CanvasError> {
+        self.0.draw_path(path, s)
+    }
+    fn draw_circle<S: BackendStyle>(
+        &mut self,
+        c: BackendCoord,
+        r: u32,
+        s: &S,
+        fill: bool,
+    ) -> Result<(), CanvasError> {
+        self.0.draw_circle(c, r, s, fill)
+    }
+    fn fill_polygon<S: BackendStyle, I: IntoIterator<Item = BackendCoord>>(
+        &mut self,
+        vert: I,
+        s: &S,
+    ) -> Result<(), CanvasError> {
+        self.0.fill_polygon(vert, s)
+    }
+    fn estimate_text_size<T: BackendTextStyle>(
+        &self,
+        text: &str,
+        style: &T,
+    ) -> Result<(u32, u32), CanvasError> {
+        let k = glyph_scale(style.size()) as u32;
+        Ok((8 * k * text.chars().count() as u32, 8 * k))
+    }
+    fn draw_text<T: BackendTextStyle>(
+        &mut self,
+        text: &str,
+        style: &T,
+        pos: BackendCoord,
+    ) -> Result<(), CanvasError> {
+        let k = glyph_scale(style.size());
+        let color = style.color();
+        let (w, h) = (8 * k * text.chars().count() as i32, 8 * k);
+        let anchor = style.anchor();
+        let dx = match anchor.h_pos {
+            HPos::Left => 0,
+            HPos::Center => -w / 2,
+            HPos::Right => -w,
+        };
+        let dy = match anchor.v_pos {
+            VPos::Top => 0,
+            VPos::Center => -h / 2,
+            VPos::Bottom => -h,
+        };
+        let trans = style.transform();
+        let (cw, ch) = self.get_size();
+        for (n, c) in text.chars().enumerate() {
+            let g = font8x8::legacy::BASIC_LEGACY[if c.is_ascii() {
+                c as usize
+            } else {
+                b'?' as usize
+            }];
+            for (row, bits) in g.iter().enumerate() {
+                for col in 0..8 {
+                    if bits & (1 << col) == 0 {
+                        continue;
+                    }
+                    for sy in 0..k {
+                        for sx in 0..k {
+                            let x = dx + (n as i32 * 8 + col) * k + sx;
+                            let y = dy + row as i32 * k + sy;
+                            let (x, y) = trans.transform(x, y);
+                            let (x, y) = (pos.0 + x, pos.1 + y);
+                            if x >= 0 && y >= 0 && (x as u32) < cw && (y as u32) < ch {
+                                self.0.draw_pixel((x, y), color)?;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One line of a panel: a variant's (time, value) points, or a flat baseline.
+pub struct Series {
+    pub label: String,
+    pub points: Vec<(f64, f64)>,
+    /// Drawn across the whole time axis at this value.
+    pub flat: bool,
+    /// Index into the palette (stable across panels).
+    pub color: usize,
+}
+
+/// One panel: a metric against training wall time.
+pub struct Panel {
+    pub title: String,
+    pub series: Vec<Series>,
+}
+
+const COLORS: [RGBColor; 10] = [
+    RGBColor(60, 60, 60),
+    RGBColor(170, 170, 170),
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+];
+
+fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
+    anyhow!("drawing a plot: {e:?}")
+}
+
+/// Draws the panels side by side and encodes the image as PNG.
+pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
+    let (pw, h) = (440u32, 380u32);
+    let w = pw * panels.len().max(1) as u32;
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = Canvas(BitMapBackend::with_buffer(&mut buf, (w, h))).into_drawing_area();
+        root.fill(&WHITE).map_err(draw_err)?;
+        let root = root
+            .titled(title, ("sans-serif", 28).into_font())
+            .map_err(draw_err)?;
+        let areas = root.split_evenly((1, panels.len().max(1)));
+        for (panel, area) in panels.iter().zip(&areas) {
+            let pts = panel.series.iter().flat_map(|s| s.points.iter());
+            let (mut x1, mut y0, mut y1) = (1e-9f64, f64::INFINITY, f64::NEG_INFINITY);
+            for &(x, y) in pts {
+                x1 = x1.max(x);
+                y0 = y0.min(y);
+                y1 = y1.max(y);
+            }
+            if !y0.is_finite() {
+                (y0, y1) = (0.0, 1.0);
+            }
+            let pad = ((y1 - y0) * 0.1).max(1e-3);
+            let mut chart = ChartBuilder::on(area)
+                .caption(&panel.title, ("sans-serif", 18).into_font())
+                .margin(8)
+                .x_label_area_size(28)
+                .y_label_area_size(52)
+                .build_cartesian_2d(0.0..x1 * 1.08, (y0 - pad)..(y1 + pad))
+                .map_err(draw_err)?;
+            chart
+                .configure_mesh()
+                .x_desc("training wall time, s")
+                .x_labels(5)
+                .y_labels(6)
+                .label_style(("sans-serif", 18).into_font())
+                .draw()
+                .map_err(draw_err)?;
+            for s in &panel.series {
+                let color = COLORS[s.color % COLORS.len()];
+                let line: Vec<(f64, f64)> = if s.flat {
+                    let y = s.points.first().map_or(0.0, |p| p.1);
+                    vec![(0.0, y), (x1 * 1.08, y)]
+                } else {
+                    s.points.clone()
+                };
+                let style = ShapeStyle::from(&color).stroke_width(if s.flat { 1 } else { 2 });
+                chart
+                    .draw_series(LineSeries::new(line, style))
+                    .map_err(draw_err)?
+                    .label(s.label.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
+                if !s.flat {
+                    chart
+                        .draw_series(s.points.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                        .map_err(draw_err)?;
+                }
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .label_font(("sans-serif", 18).into_font())
+                .position(SeriesLabelPosition::UpperRight)
+                .draw()
+                .map_err(draw_err)?;
+        }
+        root.present().map_err(draw_err)?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).ok_or_else(|| anyhow!("plot buffer size"))?;
+    let mut png = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    Ok(png)
+}
+
+/// The time-vs-error panels of one scene: mIoU and PQ in %, depth RMSE in metres. `variants`
+/// are (name, label, whether its semantic metrics mean anything); `baselines` (method, label)
+/// are drawn flat in grey.
+pub fn time_vs_error(
+    rows: &[Row],
+    scene: &str,
+    variants: &[(String, String, bool)],
+    baselines: &[(&str, &str)],
+) -> Vec<Panel> {
+    let metrics = [
+        ("miou", "mIoU, %", 100.0),
+        ("pq", "PQ, %", 100.0),
+        ("depth_rmse", "depth RMSE, m", 1.0),
+    ];
+    let any_curve = variants.iter().any(|(name, ..)| {
+        let budgets: std::collections::BTreeSet<u64> = rows
+            .iter()
+            .filter(|r| r.scene == scene && &r.variant == name)
+            .map(|r| r.budget)
+            .collect();
+        budgets.len() >= 2
+    });
+    metrics
+        .iter()
+        .map(|&(metric, title, scale)| {
+            let mut series = Vec::new();
+            for (k, (name, label, semantic)) in variants.iter().enumerate() {
+                if !semantic && metric != "depth_rmse" {
+                    continue;
+                }
+                let mut points: Vec<(f64, f64)> = rows
+                    .iter()
+                    .filter(|r| {
+                        r.scene == scene
+                            && &r.variant == name
+                            && r.method == "panoptic_nerf"
+                            && r.metric == metric
+                    })
+                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * scale)))
+                    .collect();
+                points.sort_by(|a, b| a.0.total_cmp(&b.0));
+                // Variants run at one budget only belong to the ablation table, not here.
+                if points.len() >= 2 || (!points.is_empty() && !any_curve) {
+                    series.push(Series {
+                        label: label.clone(),
+                        points,
+                        flat: false,
+                        color: k + 2,
+                    });
+                }
+            }
+            for (k, &(method, label)) in baselines.iter().enumerate() {
+                let v = rows
+                    .iter()
+                    .find(|r| r.scene == scene && r.method == method && r.metric == metric)
+                    .and_then(|r| r.value);
+                if let Some(v) = v {
+                    series.push(Series {
+                        label: label.to_string(),
+                        points: vec![(0.0, v * scale)],
+                        flat: true,
+                        color: k,
+                    });
+                }
+            }
+            Panel {
+                title: title.to_string(),
+                series,
+            }
+        })
+        .collect()
+}
