@@ -402,8 +402,7 @@ fn rays_that_hit_nothing_are_sky_and_a_scene_of_only_such_rays_is_a_clear_error(
     let slots = BTreeMap::from([("scene".to_string(), &scene), ("rays".to_string(), &rays)]);
     let e = train
         .run(&p, &Inputs::new(slots), &NoProgress)
-        .err()
-        .expect("training on rays that cross nothing must fail")
+        .expect_err("training on rays that cross nothing must fail")
         .to_string();
     assert!(
         e.contains("no ray of the selected cameras crosses a primitive"),
@@ -454,7 +453,7 @@ fn rays_in_the_planes_of_cuboid_faces_and_along_an_edge_train_finite() {
     let (rays, _) = train_render_evaluate(&scene, "rays in face planes");
     let hits = hit_counts(&rays);
     assert!(
-        hits.iter().any(|&h| h > 0) && hits.iter().any(|&h| h == 0),
+        hits.iter().any(|&h| h > 0) && hits.contains(&0),
         "want rays that hit the car and rays that hit nothing: {hits:?}"
     );
 }
