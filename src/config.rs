@@ -305,11 +305,15 @@ fn type_fits(default: &Value, user: &Value) -> bool {
 }
 
 fn describe(v: &Value) -> String {
-    let s = v.to_string();
-    if s.len() > 40 {
-        format!("{}...", &s[..40])
-    } else {
-        s
+    shorten(&v.to_string(), 40)
+}
+
+/// `s` cut to at most `max` characters plus `...` (on a character boundary: values may hold
+/// any UTF-8).
+pub fn shorten(s: &str, max: usize) -> String {
+    match s.char_indices().nth(max) {
+        Some((end, _)) => format!("{}...", &s[..end]),
+        None => s.to_string(),
     }
 }
 

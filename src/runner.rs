@@ -97,12 +97,7 @@ fn key_of(
 }
 
 fn show_value(v: &Value) -> String {
-    let s = v.to_string();
-    if s.len() > 48 {
-        format!("{}...", &s[..45])
-    } else {
-        s
-    }
+    crate::config::shorten(&v.to_string(), 48)
 }
 
 /// Appends `param `path` old -> new` for every leaf that differs (nested objects recursively).
@@ -733,7 +728,8 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
     };
     if !opts.dry_run {
         let path = store.root().join("runs").join("last-run.json");
-        let _ = std::fs::write(path, serde_json::to_vec_pretty(&rep)?);
+        // Best effort (the summary is printed too), but never a half-written file.
+        let _ = crate::store::write_atomic(&path, &serde_json::to_vec_pretty(&rep)?);
     }
     Ok(rep)
 }

@@ -117,6 +117,22 @@ fn hash_bytes(bytes: &[u8]) -> String {
     h.finalize().to_hex().to_string()
 }
 
+/// Writes `bytes` to `path` through a temporary file beside it and a rename, so readers see the
+/// old content or the new, never a part; on failure (disk full) no temporary file is left.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let name = path.file_name().unwrap_or_default().to_string_lossy();
+    let tmp = path.with_file_name(format!(".{name}.{}", std::process::id()));
+    let written = fs::write(&tmp, bytes)
+        .with_context(|| format!("writing {} (disk full?)", tmp.display()))
+        .and_then(|()| {
+            fs::rename(&tmp, path).with_context(|| format!("publishing {}", path.display()))
+        });
+    if written.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    written
+}
+
 fn fsync_dir(dir: &Path) -> Result<()> {
     File::open(dir)
         .and_then(|f| f.sync_all())
@@ -170,13 +186,10 @@ impl Store {
 
     fn save_memo(&self, memo: &Memo) {
         // Best effort: losing the memo only costs a re-hash.
-        let tmp = self
-            .root
-            .join("state")
-            .join(format!("verified.json.{}", std::process::id()));
-        if fs::write(&tmp, serde_json::to_vec(memo).unwrap_or_default()).is_ok() {
-            let _ = fs::rename(&tmp, self.memo_path());
-        }
+        let _ = write_atomic(
+            &self.memo_path(),
+            &serde_json::to_vec(memo).unwrap_or_default(),
+        );
     }
 
     fn read_manifest(&self, key: &str) -> Result<Manifest, String> {
@@ -312,16 +325,9 @@ impl Store {
             h.update(digest.as_bytes());
             h.update(b"\n");
         }
-        if changed {
-            let tmp = self
-                .root
-                .join("state")
-                .join(format!("files.json.{}", std::process::id()));
-            if fs::create_dir_all(self.root.join("state")).is_ok()
-                && fs::write(&tmp, serde_json::to_vec(&memo).unwrap_or_default()).is_ok()
-            {
-                let _ = fs::rename(&tmp, &memo_path);
-            }
+        if changed && fs::create_dir_all(self.root.join("state")).is_ok() {
+            // Best effort, like the verified-files memo.
+            let _ = write_atomic(&memo_path, &serde_json::to_vec(&memo).unwrap_or_default());
         }
         Ok(h.finalize().to_hex().to_string())
     }
@@ -465,12 +471,8 @@ impl Store {
             history.push(rec.key.clone());
         }
         rec.history = history;
-        let dir = self.root.join("runs");
-        let tmp = dir.join(format!(".{stage}.json.{}", std::process::id()));
-        fs::write(&tmp, serde_json::to_vec_pretty(&rec)?)
-            .with_context(|| format!("writing {}", tmp.display()))?;
-        fs::rename(&tmp, dir.join(format!("{stage}.json")))?;
-        Ok(())
+        let dest = self.root.join("runs").join(format!("{stage}.json"));
+        write_atomic(&dest, &serde_json::to_vec_pretty(&rec)?)
     }
 
     /// All run records (stage name -> record).
@@ -629,12 +631,14 @@ impl RunLock {
                 );
             }
         }
-        file.set_len(0)?;
-        use std::io::Seek;
-        file.seek(std::io::SeekFrom::Start(0))?;
+        // Who holds the lock, for the message of a second run.
         let host = fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
-        write!(file, "{} on {}", std::process::id(), host.trim())?;
-        file.flush()?;
+        use std::io::Seek;
+        file.set_len(0)
+            .and_then(|()| file.seek(std::io::SeekFrom::Start(0)))
+            .and_then(|_| write!(file, "{} on {}", std::process::id(), host.trim()))
+            .and_then(|()| file.flush())
+            .with_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
         Ok(RunLock { _file: file })
     }
 }

@@ -20,17 +20,6 @@ fn metrics_bytes(ws: &Workspace) -> Vec<u8> {
     fs::read(out.join("metrics.json")).unwrap()
 }
 
-fn assert_every_entry_verifies(ws: &Workspace, after: &str) {
-    let store = pipe::store::Store::open_existing(&ws.cache());
-    for key in ws.entries() {
-        assert_eq!(
-            pipe::cli::entry_state(&store, &key),
-            "valid",
-            "entry {key} is not valid after {after}"
-        );
-    }
-}
-
 #[test]
 fn sigkill_at_random_moments_never_corrupts_the_cache() {
     // Reference: one uninterrupted run.
@@ -58,7 +47,7 @@ fn sigkill_at_random_moments_never_corrupts_the_cache() {
         child.kill().unwrap();
         child.wait().unwrap();
         kills += 1;
-        assert_every_entry_verifies(&ws, &format!("kill {kills} at {delay:?}"));
+        ws.assert_every_entry_verifies(&format!("kill {kills} at {delay:?}"));
         // Now and then start over so that kills land in early stages too.
         if kills % 6 == 0 {
             fs::remove_dir_all(ws.cache().join("objects")).unwrap();
@@ -69,7 +58,7 @@ fn sigkill_at_random_moments_never_corrupts_the_cache() {
         "only {kills} kills landed in {attempts} attempts"
     );
     ws.run_ok(&[]);
-    assert_every_entry_verifies(&ws, "the final run");
+    ws.assert_every_entry_verifies("the final run");
     assert!(
         fs::read_dir(ws.cache().join("tmp"))
             .unwrap()

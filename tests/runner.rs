@@ -200,6 +200,8 @@ fn corrupt_entries_are_detected_moved_aside_and_recomputed() {
         ws.run_ok(&[]);
         let before = ws.numbers("b");
         ws.corrupt_file("b", damage);
+        let st = ws.status(&[]);
+        assert!(ws.status_line(&st, "b").contains("CORRUPT"), "{what}: {st}");
         let out = ws.run_ok(&[]);
         let r = ws.last_run_map();
         assert_eq!(r["b"], Outcome::Ran, "{what}: corrupt entry reused\n{out}");
@@ -294,8 +296,8 @@ fn concurrent_runs_serialise_and_do_not_corrupt_the_cache() {
     assert_eq!(ws.numbers("d"), vec![210, 214, 218]);
 
     // --no-wait fails with a clear message while another run holds the lock.
-    let holder = ws.spawn(&["--force", "a", "--set", "a.sleep_ms=1500"]);
-    thread::sleep(Duration::from_millis(400));
+    // (`running` is printed after the lock is taken.)
+    let holder = ws.spawn_until(&["--force", "a", "--set", "a.sleep_ms=1500"], "running `a`");
     let (code, _, err) = ws.run(&["--no-wait"]);
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("is locked by process"), "{err}");

@@ -185,6 +185,18 @@ impl Workspace {
         v
     }
 
+    /// Every entry in `objects/` verifies (sizes and hashes): nothing partial or corrupt.
+    pub fn assert_every_entry_verifies(&self, after: &str) {
+        let store = pipe::store::Store::open_existing(&self.cache());
+        for key in self.entries() {
+            assert_eq!(
+                pipe::cli::entry_state(&store, &key),
+                "valid",
+                "entry {key} is not valid after {after}"
+            );
+        }
+    }
+
     /// Applies `damage` to the first table file of `stage`'s entry.
     pub fn corrupt_file(&self, stage: &str, damage: impl FnOnce(&mut Vec<u8>)) {
         let dir = self.cache().join("objects").join(self.stage_key(stage));
@@ -210,5 +222,100 @@ impl Workspace {
         stages::tables::get_prim::<arrow::datatypes::Int64Type>(b, "test_numbers", "value")
             .unwrap()
             .to_vec()
+    }
+}
+
+/// The hand-written KITTI-360 sequence of tests/fixtures/kitti360 copied to `root`, with the
+/// PNGs its README describes written (8x4 stereo pairs, pseudo labels and GT for frames 3, 7
+/// and 12). Returns the `scene:` stage of a pipeline that loads it (frames 3 and 7).
+pub fn kitti360_fixture(root: &Path) -> String {
+    copy_dir(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/kitti360"),
+        root,
+    );
+    let png = |rel: String| {
+        let p = root.join(rel);
+        fs::create_dir_all(p.parent().unwrap()).unwrap();
+        p
+    };
+    for f in [3u32, 7, 12] {
+        for c in [0u32, 1] {
+            let rgb: Vec<u8> = (0..4 * 8 * 3)
+                .map(|i| (f * 31 + c * 17 + i * 5) as u8)
+                .collect();
+            let img = png(format!(
+                "data_2d_raw/seq_a/image_{c:02}/data_rect/{f:010}.png"
+            ));
+            stages::pngio::write_rgb8(&img, 8, 4, &rgb).unwrap();
+            let gt = format!("data_2d_semantics/train/seq_a/image_{c:02}");
+            let sem: Vec<u8> = (0..32).map(|i| if i < 16 { 23 } else { 26 }).collect();
+            let inst: Vec<u16> = sem
+                .iter()
+                .map(|&l| if l == 26 { 26001 } else { 23000 })
+                .collect();
+            let sem_png = png(format!("{gt}/semantic/{f:010}.png"));
+            stages::pngio::write_gray8(&sem_png, 8, 4, &sem).unwrap();
+            let inst_png = png(format!("{gt}/instance/{f:010}.png"));
+            stages::pngio::write_gray16(&inst_png, 8, 4, &inst).unwrap();
+        }
+        let pl: Vec<u8> = (0..32).map(|i| if i < 20 { 23 } else { 7 }).collect();
+        let pl_png = png(format!("pseudo_labels/seq_a/image_00/{f:010}.png"));
+        stages::pngio::write_gray8(&pl_png, 8, 4, &pl).unwrap();
+    }
+    format!(
+        "  scene:
+    uses: kitti360_scene
+    params: {{root: '{}', sequence: seq_a, first_frame: 0, last_frame: 10, eval_every: 1}}
+",
+        root.display()
+    )
+}
+
+/// Copies a directory tree (following symlinks).
+pub fn copy_dir(from: &Path, to: &Path) {
+    fs::create_dir_all(to).unwrap();
+    for e in fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let t = to.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &t);
+        } else {
+            fs::copy(e.path(), t).unwrap();
+        }
+    }
+}
+
+/// Waits for `child` at most `limit`; kills it and returns `None` when it takes longer.
+pub fn wait_with_timeout(
+    mut child: Child,
+    limit: std::time::Duration,
+) -> Option<std::process::Output> {
+    let start = std::time::Instant::now();
+    // Drain the pipes on threads so a chatty child never blocks on a full pipe.
+    let drain = |r: Option<Box<dyn std::io::Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut v = Vec::new();
+            if let Some(mut r) = r {
+                let _ = r.read_to_end(&mut v);
+            }
+            v
+        })
+    };
+    let out = drain(child.stdout.take().map(|s| Box::new(s) as _));
+    let err = drain(child.stderr.take().map(|s| Box::new(s) as _));
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(std::process::Output {
+                status,
+                stdout: out.join().unwrap(),
+                stderr: err.join().unwrap(),
+            });
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            return None;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(5));
     }
 }

@@ -231,6 +231,7 @@ fn load_primitives(
             q.distance(*c) <= max_distance
         })
     };
+    let (total, mut dynamic) = (objects.len(), 0);
     let mut out = Vec::new();
     for o in objects {
         let at = &o.element;
@@ -247,6 +248,7 @@ fn load_primitives(
                 )
             })?;
         if o.timestamp != -1 {
+            dynamic += 1;
             continue; // dynamic object: one box per timestamp, not a static primitive
         }
         let instance = if label.has_instances {
@@ -280,6 +282,18 @@ fn load_primitives(
         if near(&p.aabb()) {
             out.push(p);
         }
+    }
+    if out.is_empty() {
+        // Nothing to transfer labels from: every ray would be sky.
+        return Err(err(
+            path,
+            format!(
+                "no static object within {max_distance} m of the selected cameras (the file has \
+                 {total} object(s): {dynamic} dynamic, {} farther away); at least one 3D \
+                 primitive is needed",
+                total - dynamic
+            ),
+        ));
     }
     Ok(out)
 }

@@ -282,12 +282,15 @@ fn matrix(path: &Path, obj: &str, node: roxmltree::Node) -> Result<(usize, usize
         .split_whitespace()
         .map(|t| parse_f64(path, &at, t))
         .collect::<Result<Vec<f64>>>()?;
-    if v.len() != rows * cols {
+    // Checked: a hostile <rows> x <cols> must not overflow (and then match a short <data>).
+    if rows.checked_mul(cols) != Some(v.len()) {
+        let needs = rows
+            .checked_mul(cols)
+            .map_or_else(|| "more than 2^64".to_string(), |n| n.to_string());
         return Err(err(
             path,
             format!(
-                "{at}: {rows} x {cols} matrix needs {} values, <data> has {}",
-                rows * cols,
+                "{at}: {rows} x {cols} matrix needs {needs} values, <data> has {}",
                 v.len()
             ),
         ));
