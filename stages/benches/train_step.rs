@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use stages::field::mlp::SplitMix64;
 use stages::field::{Backend, EncodingKind, FieldConfig, FieldSpec};
+use stages::fused::{FusedField, FusedTrainer};
 use stages::train::{RayBatch, RaySamples, RayTargets, TrainConfig, Trainer};
 
 const SAMPLES: usize = 32;
@@ -53,6 +54,47 @@ fn random_batch(rays: usize, seed: u64) -> RayBatch {
     }
 }
 
+/// The fused CPU path on the default grid field, with its phase breakdown.
+fn bench_fused(steps: usize) {
+    for rays in [1024, 4096] {
+        let field = FieldConfig::default();
+        let config = TrainConfig {
+            field: field.clone(),
+            rays_per_batch: rays,
+            ..Default::default()
+        };
+        let spec = FieldSpec {
+            config: field,
+            num_classes: CLASSES,
+            aabb_min: [-12.0, -12.0, 0.0],
+            aabb_max: [12.0, 12.0, 40.0],
+            seed: 0,
+        };
+        let init = FusedField::from_field(&spec.init(&Backend::default().device())).expect("grid");
+        let mut trainer = FusedTrainer::new(config, init).expect("trainer");
+        let batch = random_batch(rays, 1);
+        for _ in 0..2 {
+            trainer.step(&batch).expect("warm-up step");
+        }
+        let mut times = Vec::new();
+        let mut phases = [0f64; 3];
+        for _ in 0..steps {
+            let t0 = Instant::now();
+            trainer.step(&batch).expect("step");
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+            for (p, t) in phases.iter_mut().zip(trainer.timings) {
+                *p += t * 1e3 / steps as f64;
+            }
+        }
+        let mean = times.iter().sum::<f64>() / times.len() as f64;
+        let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
+        println!(
+            "{:<8} {:<5} {:>6} {:>10.1} {:>10.1}   (forward {:.1}, backward {:.1}, reduce+adam {:.1} ms)",
+            "fused", "grid", rays, mean, min, phases[0], phases[1], phases[2]
+        );
+    }
+}
+
 fn main() {
     let steps: usize = std::env::var("BENCH_STEPS")
         .ok()
@@ -76,6 +118,10 @@ fn main() {
             },
         ),
     ];
+    bench_fused(steps);
+    if std::env::var("BENCH_FUSED_ONLY").is_ok() {
+        return;
+    }
     for backend in Backend::available() {
         for (name, field) in &configs {
             for rays in [1024, 4096] {

@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 use crate::{
     compose::{composite_ray, Scratch},
     field::{FieldHead, RadianceField},
+    fused::{FusedField, Heads},
     labels, pngio,
     sampling::{self, RaySet, SamplingParams},
     tables,
@@ -31,7 +32,8 @@ pub struct RenderParams {
     pub chunk: usize,
     /// Samples inside primitives per ray; 0 = as in training.
     pub samples: usize,
-    /// burn backend for inference; empty = as in training.
+    /// Inference backend: empty = the fused CPU path for grid fields (else the default burn
+    /// backend); or a burn backend name (flex, ndarray, wgpu, cuda) or `fused`.
     pub backend: String,
 }
 
@@ -72,8 +74,16 @@ fn read(t: Tensor<2>) -> Vec<f32> {
 /// Field outputs for a batch of samples: (sigma [R*S], rgb [R*S*3], logits [R*S*C]).
 fn evaluate_field(
     field: &RadianceField,
+    fused: Option<&FusedField>,
     b: &sampling::SampleBatch,
 ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    if let Some(f) = fused {
+        let heads = Heads {
+            rgb: true,
+            semantics: true,
+        };
+        return f.evaluate(&b.positions, &b.dirs, b.samples, heads);
+    }
     let input = field.prepare(&b.positions, Some(&b.dirs), b.samples);
     let o = field.forward(&input, &[FieldHead::Rgb, FieldHead::Semantics]);
     let sigma = o
@@ -90,7 +100,7 @@ fn evaluate_field(
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const INPUTS: &'static [InputSlot] = &[
@@ -130,12 +140,18 @@ impl TypedStage for Render {
 
     fn run(&self, p: &RenderParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
         let set = RaySet::from_inputs(inputs)?;
-        let backend = (!p.backend.is_empty()).then_some(p.backend.as_str());
+        let burn_backend =
+            (!p.backend.is_empty() && p.backend != "fused").then_some(p.backend.as_str());
         let (field, info) = load_field(
             inputs.table("train", "weights")?,
             inputs.table("train", "model")?,
-            backend,
+            burn_backend,
         )?;
+        let fused = match p.backend.as_str() {
+            "" => FusedField::from_field(&field).ok(),
+            "fused" => Some(FusedField::from_field(&field).map_err(StageError::Params)?),
+            _ => None,
+        };
         if info.classes != set.classes {
             return Err(StageError::Input(format!(
                 "the field was trained for classes {:?} but this scene's primitives give {:?}",
@@ -194,7 +210,7 @@ impl TypedStage for Render {
                 .collect();
             for chunk in hit_ids.chunks(p.chunk) {
                 let b = sampling::sample_batch(&set, chunk, &sampling, None);
-                let (sigma, col, logits) = evaluate_field(&field, &b);
+                let (sigma, col, logits) = evaluate_field(&field, fused.as_ref(), &b);
                 let s_n = b.samples;
                 if sigma.len() != chunk.len() * s_n
                     || col.len() != sigma.len() * 3

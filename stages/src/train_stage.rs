@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::{
     field::{weights::NamedWeight, Backend, FieldSpec, RadianceField},
+    fused::{FusedField, FusedTrainer},
     sampling::{self, RaySet, SampleBatch, SamplingParams, SplitMix},
     tables,
     train::{LossTerm, RayBatch, RaySamples, RayTargets, TrainConfig, Trainer},
@@ -29,7 +30,8 @@ pub struct TrainParams {
     pub sampling: SamplingParams,
     /// Cameras whose rays are trained on (0 = left, 1 = right).
     pub cameras: Vec<u8>,
-    /// burn backend: flex (default), ndarray, wgpu or cuda (the latter need their cargo feature).
+    /// `fused` (default: the hand-written CPU path of the grid field, see `stages::fused`), or a
+    /// burn backend: flex, ndarray, wgpu or cuda (the latter need their cargo feature).
     pub backend: String,
 }
 
@@ -39,10 +41,13 @@ impl Default for TrainParams {
             train: TrainConfig::default(),
             sampling: SamplingParams::default(),
             cameras: vec![0, 1],
-            backend: Backend::default().name().to_string(),
+            backend: FUSED.to_string(),
         }
     }
 }
+
+/// The `backend` value of the fused CPU path.
+pub const FUSED: &str = "fused";
 
 /// The model description stored beside the weights.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -113,7 +118,7 @@ fn backend(name: &str) -> Result<Backend> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -150,7 +155,17 @@ impl TypedStage for Train {
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
             return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));
         }
-        backend(&p.backend)?;
+        if p.backend == FUSED {
+            if p.train.field.encoding != crate::field::EncodingKind::Grid {
+                return Err(StageError::Params(
+                    "`backend: fused` supports `train.field.encoding: grid` only; use backend flex \
+                     for pe"
+                        .into(),
+                ));
+            }
+        } else {
+            backend(&p.backend)?;
+        }
         Ok(())
     }
 
@@ -173,7 +188,17 @@ impl TypedStage for Train {
             ));
         }
         let spec = spec_for(&set, &p.train);
-        let mut trainer = Trainer::new(p.train.clone(), spec.clone(), backend(&p.backend)?)?;
+        let mut trainer = if p.backend == FUSED {
+            let init = spec.init(&Backend::default().device());
+            let field = FusedField::from_field(&init).map_err(StageError::Params)?;
+            AnyTrainer::Fused(Box::new(FusedTrainer::new(p.train.clone(), field)?))
+        } else {
+            AnyTrainer::Burn(Box::new(Trainer::new(
+                p.train.clone(),
+                spec.clone(),
+                backend(&p.backend)?,
+            )?))
+        };
         let iters = p.train.iterations;
         let batch = p.train.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
@@ -196,10 +221,18 @@ impl TypedStage for Train {
                 );
             }
         }
-        let field: RadianceField = trainer.into_field();
-        let weights = field.weights();
+        let (weights, spec) = match trainer {
+            AnyTrainer::Fused(t) => {
+                let f = t.into_field();
+                (f.weights, f.spec)
+            }
+            AnyTrainer::Burn(t) => {
+                let f: RadianceField = t.into_field();
+                (f.weights(), f.spec)
+            }
+        };
         let info = ModelInfo {
-            spec: field.spec.clone(),
+            spec,
             sampling: p.sampling.clone(),
             classes: set.classes.clone(),
         };
@@ -265,6 +298,24 @@ pub fn load_field(
         .load_weights(&rows)
         .map_err(|e| StageError::Input(format!("table `weights`: {e}")))?;
     Ok((field, info))
+}
+
+/// The burn trainer or the fused CPU one.
+enum AnyTrainer {
+    Burn(Box<Trainer>),
+    Fused(Box<FusedTrainer>),
+}
+
+impl AnyTrainer {
+    fn step(
+        &mut self,
+        batch: &RayBatch,
+    ) -> std::result::Result<crate::train::LossTerms, crate::train::TrainError> {
+        match self {
+            AnyTrainer::Burn(t) => t.step(batch),
+            AnyTrainer::Fused(t) => t.step(batch),
+        }
+    }
 }
 
 /// Columns of the train log.
