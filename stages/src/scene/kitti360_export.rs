@@ -207,7 +207,11 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             "P_rect_0{k}: {} 0 {cx} {tx} 0 {} {cy} 0 0 0 1 0",
             c.fx, c.fy
         );
-        let r = if k == 0 { r_rect.as_str() } else { "1 0 0 0 1 0 0 0 1" };
+        let r = if k == 0 {
+            r_rect.as_str()
+        } else {
+            "1 0 0 0 1 0 0 0 1"
+        };
         let _ = writeln!(calib, "R_rect_0{k}: {r}");
         let _ = writeln!(calib, "S_rect_0{k}: {} {}", c.width, c.height);
     }

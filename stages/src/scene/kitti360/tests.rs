@@ -440,11 +440,7 @@ fn lidar_scans_project_into_the_left_camera() {
     );
     // A missing scan of an evaluation frame; a missing calibration.
     std::fs::remove_file(&path).unwrap();
-    assert_error(
-        &p,
-        "velodyne_points/data/0000000007.bin",
-        &["cannot read"],
-    );
+    assert_error(&p, "velodyne_points/data/0000000007.bin", &["cannot read"]);
     std::fs::write(&path, &bytes).unwrap();
     std::fs::remove_file(root.join("calibration/calib_cam_to_velo.txt")).unwrap();
     assert_error(
