@@ -9,7 +9,23 @@
 //! data_2d_semantics/train/<seq>/image_0x/semantic/%010d.png       8-bit label ids (GT)
 //! data_2d_semantics/train/<seq>/image_0x/instance/%010d.png       16-bit id*1000+instance (GT)
 //! pseudo_labels/<seq>/image_00/%010d.png                          8-bit label ids (noisy)
+//! stereo_depth/<seq>/image_00/%010d.png                           16-bit metres*256 (weak depth)
+//! data_3d_raw/<seq>/velodyne_points/data/%010d.bin                LiDAR, float32 N x 4 (eval frames)
+//! calibration/calib_cam_to_velo.txt                               3x4 unrectified camera 0 -> velodyne
 //! ```
+//!
+//! Every path is the `kitti360_scene` loader's default pattern (its `lidar` and `stereo_depth`
+//! are off by default: set them to [`kitti360::LIDAR_PATTERN`] and
+//! [`kitti360::STEREO_DEPTH_PATTERN`] to read what this writes).
+//!
+//! LiDAR: the scene's per-pixel `lidar_depth` (z-depth in the left camera, 0 = none) becomes one
+//! point per valid pixel, on the ray through the pixel centre at that depth, in the velodyne
+//! frame ([`rect_to_velo`]: the synthetic scanner's mounting). `calib_cam_to_velo.txt` holds the
+//! *unrectified* camera 0 -> velodyne transform and `perspective.txt` a small non-identity
+//! `R_rect_00`, as in KITTI-360, so a loader must compose `R_rect_00 * inverse(cam_to_velo)` to
+//! get back to the rectified camera. Re-projecting the points gives the same pixels and depths
+//! up to float32 rounding of the coordinates (about 1e-6 relative); intensity is written as 0.
+//! Stereo depth is quantised to 1/256 m by the 16-bit format (values above 255.99 m saturate).
 //!
 //! Poses and primitives are written in world coordinates (scene frame + `scene_info.origin`).
 //! The principal point in `perspective.txt` follows KITTI/OpenCV (pixel centres at integer
@@ -19,14 +35,15 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use arrow::datatypes::{Float64Type, UInt16Type, UInt32Type, UInt8Type};
+use arrow::datatypes::{Float32Type, Float64Type, UInt16Type, UInt32Type, UInt8Type};
 use arrow::record_batch::RecordBatch;
-use glam::DVec3;
+use glam::{DAffine3, DMat3, DVec3};
 
+use super::kitti360::{self, Kitti360Params};
 use crate::geometry::{
-    cameras_from_table, io::affine_to_row_major, primitives_from_table, Primitive, Shape,
+    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, Primitive, Shape,
 };
-use crate::labels;
+use crate::{labels, pngio};
 use crate::{tables, Result, StageError, Tables};
 
 /// The scene-level facts of `scene_info`.
@@ -85,11 +102,15 @@ fn create_parent(path: &Path) -> Result<()> {
     Ok(())
 }
 
-fn write_text(path: PathBuf, text: &str, files: &mut Vec<PathBuf>) -> Result<()> {
+fn write_bytes(path: PathBuf, bytes: &[u8], files: &mut Vec<PathBuf>) -> Result<()> {
     create_parent(&path)?;
-    std::fs::write(&path, text).map_err(|e| io_err(&path, e))?;
+    std::fs::write(&path, bytes).map_err(|e| io_err(&path, e))?;
     files.push(path);
     Ok(())
+}
+
+fn write_text(path: PathBuf, text: &str, files: &mut Vec<PathBuf>) -> Result<()> {
+    write_bytes(path, text.as_bytes(), files)
 }
 
 pub(crate) fn write_png(
@@ -107,12 +128,53 @@ pub(crate) fn write_png(
     Ok(())
 }
 
+/// `R_rect_00` of the export: the unrectified -> rectified left camera rotation, a small
+/// rotation (0.4 degrees) like KITTI-360's, so the LiDAR round trip exercises it.
+pub fn r_rect_00() -> DMat3 {
+    DMat3::from_axis_angle(DVec3::new(1.0, -2.0, 0.5).normalize(), 0.4f64.to_radians())
+}
+
+/// Rectified left camera -> velodyne: the synthetic scanner sits at camera (0.3, -0.2, -0.3)
+/// with axes forward = camera z, left = camera -x, up = camera -y (see `scene::generate`).
+pub fn rect_to_velo() -> DAffine3 {
+    let velo_to_rect = DAffine3::from_mat3_translation(
+        DMat3::from_cols(DVec3::Z, -DVec3::X, -DVec3::Y),
+        DVec3::new(0.3, -0.2, -0.3),
+    );
+    velo_to_rect.inverse()
+}
+
+/// A velodyne `.bin` (float32 x, y, z, intensity, little-endian) of one left image's LiDAR
+/// z-depth: a point per valid pixel on the ray through the pixel centre, at that depth.
+pub fn lidar_points(depth: &[f32], cam: &Camera, rect_to_velo: &DAffine3) -> Vec<u8> {
+    let w = cam.width as usize;
+    let mut out = Vec::new();
+    for (i, &z) in depth.iter().enumerate() {
+        if !(z.is_finite() && z > 0.0) {
+            continue;
+        }
+        let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+        let z = z as f64;
+        let p = DVec3::new((x - cam.cx) / cam.fx * z, (y - cam.cy) / cam.fy * z, z);
+        let q = rect_to_velo.transform_point3(p);
+        for v in [q.x as f32, q.y as f32, q.z as f32, 0.0] {
+            out.extend(v.to_le_bytes());
+        }
+    }
+    out
+}
+
 /// Writes the KITTI-360 layout into `dir`; returns the files written.
 pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     let info = scene_info(t)?;
-    let seq = info.sequence.as_str();
     let cams = cameras_from_table(table(t, "cameras")?)?;
     let prims = primitives_from_table(table(t, "primitives")?)?;
+    // The loader's default patterns, resolved in `dir`.
+    let at = Kitti360Params {
+        root: dir.display().to_string(),
+        sequence: info.sequence.clone(),
+        ..Default::default()
+    };
     let mut files = Vec::new();
 
     // Poses of the left camera, world = scene + origin.
@@ -128,11 +190,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         }
         poses.push('\n');
     }
-    write_text(
-        dir.join(format!("data_poses/{seq}/cam0_to_world.txt")),
-        &poses,
-        &mut files,
-    )?;
+    write_text(at.path(&at.poses, 0, 0), &poses, &mut files)?;
 
     // Rectified intrinsics (both cameras share them; the right one is offset by the baseline).
     let left = cams
@@ -141,6 +199,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         .ok_or_else(|| StageError::Input("table `cameras` has no left camera".into()))?;
     let c = &left.cam;
     let (cx, cy) = (c.cx - 0.5, c.cy - 0.5);
+    let r_rect = r_rect_00().transpose().to_cols_array().map(num).join(" ");
     let mut calib = String::new();
     for (k, tx) in [(0, 0.0), (1, -c.fx * info.baseline)] {
         let _ = writeln!(
@@ -148,10 +207,26 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             "P_rect_0{k}: {} 0 {cx} {tx} 0 {} {cy} 0 0 0 1 0",
             c.fx, c.fy
         );
-        let _ = writeln!(calib, "R_rect_0{k}: 1 0 0 0 1 0 0 0 1");
+        let r = if k == 0 {
+            r_rect.as_str()
+        } else {
+            "1 0 0 0 1 0 0 0 1"
+        };
+        let _ = writeln!(calib, "R_rect_0{k}: {r}");
         let _ = writeln!(calib, "S_rect_0{k}: {} {}", c.width, c.height);
     }
-    write_text(dir.join("calibration/perspective.txt"), &calib, &mut files)?;
+    write_text(at.path(&at.calibration, 0, 0), &calib, &mut files)?;
+
+    // Unrectified camera 0 -> velodyne = rectified -> velodyne after unrectified -> rectified.
+    let rect_to_velo = rect_to_velo();
+    let cam_to_velo = rect_to_velo * DAffine3::from_mat3(r_rect_00());
+    let row_major = affine_to_row_major(&cam_to_velo);
+    let line = row_major[..12].iter().map(|&v| num(v)).collect::<Vec<_>>();
+    write_text(
+        at.path(&at.lidar_calib, 0, 0),
+        &(line.join(" ") + "\n"),
+        &mut files,
+    )?;
 
     // 3D bounding primitives.
     let frames: Vec<u32> = cams.iter().map(|r| r.frame).collect();
@@ -160,19 +235,13 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         frames.iter().copied().max().unwrap_or(0),
     );
     let xml = bboxes_xml(&prims, info.origin, first, last)?;
-    write_text(
-        dir.join(format!("data_3d_bboxes/train/{seq}.xml")),
-        &xml,
-        &mut files,
-    )?;
+    write_text(at.path(&at.bboxes, 0, 0), &xml, &mut files)?;
 
     // Images.
     let images = table(t, "images")?;
     let rgb = tables::get_binary(images, "images", "rgb")?;
     for (i, (f, cam, w, h)) in image_keys(images, "images")?.into_iter().enumerate() {
-        let path = dir.join(format!(
-            "data_2d_raw/{seq}/image_0{cam}/data_rect/{f:010}.png"
-        ));
+        let path = at.path(&at.images, f, cam);
         write_png(
             path,
             w,
@@ -186,12 +255,10 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     // Ground-truth labels.
     let sem = table(t, "gt_semantic")?;
     let labels_col = tables::get_list::<UInt8Type>(sem, "gt_semantic", "labels")?;
+    let gt_semantic = at.gt_semantic.clone().unwrap_or_default();
     for (i, (f, cam, w, h)) in image_keys(sem, "gt_semantic")?.into_iter().enumerate() {
-        let path = dir.join(format!(
-            "data_2d_semantics/train/{seq}/image_0{cam}/semantic/{f:010}.png"
-        ));
         write_png(
-            path,
+            at.path(&gt_semantic, f, cam),
             w,
             h,
             image::ExtendedColorType::L8,
@@ -201,33 +268,20 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     }
     let inst = table(t, "gt_instance")?;
     let inst_col = tables::get_list::<UInt16Type>(inst, "gt_instance", "instances")?;
+    let gt_instance = at.gt_instance.clone().unwrap_or_default();
     for (i, (f, cam, w, h)) in image_keys(inst, "gt_instance")?.into_iter().enumerate() {
-        let path = dir.join(format!(
-            "data_2d_semantics/train/{seq}/image_0{cam}/instance/{f:010}.png"
-        ));
-        // PNG stores 16-bit samples big-endian; `save_buffer` takes native-endian u16 bytes.
-        let bytes: Vec<u8> = inst_col
-            .row(i)
-            .iter()
-            .flat_map(|v| v.to_ne_bytes())
-            .collect();
-        write_png(
-            path,
-            w,
-            h,
-            image::ExtendedColorType::L16,
-            &bytes,
-            &mut files,
-        )?;
+        let path = at.path(&gt_instance, f, cam);
+        pngio::write_gray16(&path, w, h, inst_col.row(i))?;
+        files.push(path);
     }
 
-    // Pseudo labels.
+    // Pseudo labels and stereo depth (left camera).
     let pl = table(t, "pseudo_labels")?;
     let pl_col = tables::get_list::<UInt8Type>(pl, "pseudo_labels", "labels")?;
     for (i, (f, cam, w, h)) in image_keys(pl, "pseudo_labels")?.into_iter().enumerate() {
-        let path = dir.join(format!("pseudo_labels/{seq}/image_0{cam}/{f:010}.png"));
+        left_only("pseudo_labels", f, cam)?;
         write_png(
-            path,
+            at.path(&at.pseudo_labels, f, 0),
             w,
             h,
             image::ExtendedColorType::L8,
@@ -235,7 +289,105 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             &mut files,
         )?;
     }
+    let sd = table(t, "stereo_depth")?;
+    let sd_col = tables::get_list::<Float32Type>(sd, "stereo_depth", "depth")?;
+    for (i, (f, cam, w, h)) in image_keys(sd, "stereo_depth")?.into_iter().enumerate() {
+        left_only("stereo_depth", f, cam)?;
+        let path = at.path(kitti360::STEREO_DEPTH_PATTERN, f, 0);
+        pngio::write_gray16(&path, w, h, &pngio::depth_to_u16(sd_col.row(i)))?;
+        files.push(path);
+    }
+
+    // LiDAR scans of the evaluation frames.
+    let ld = table(t, "lidar_depth")?;
+    let ld_col = tables::get_list::<Float32Type>(ld, "lidar_depth", "depth")?;
+    for (i, (f, cam, w, h)) in image_keys(ld, "lidar_depth")?.into_iter().enumerate() {
+        left_only("lidar_depth", f, cam)?;
+        let row = cams
+            .iter()
+            .find(|r| (r.frame, r.camera) == (f, 0))
+            .filter(|r| (r.cam.width, r.cam.height) == (w, h))
+            .ok_or_else(|| {
+                StageError::Input(format!(
+                    "table `lidar_depth`: frame {f} ({w}x{h}) has no left camera of that size"
+                ))
+            })?;
+        let bytes = lidar_points(ld_col.row(i), &row.cam, &rect_to_velo);
+        write_bytes(at.path(kitti360::LIDAR_PATTERN, f, 0), &bytes, &mut files)?;
+    }
     Ok(files)
+}
+
+/// How far a loaded `stereo_depth` may be from the exported one: half of the 16-bit format's
+/// 1/256 m step (plus float32 slack).
+pub const STEREO_DEPTH_TOLERANCE_M: f64 = 0.5 / 256.0 + 1e-6;
+/// How far (relative) a re-projected `lidar_depth` may be from the exported one: float32
+/// rounding of the velodyne coordinates.
+pub const LIDAR_DEPTH_TOLERANCE: f64 = 1e-6;
+
+/// The difference between two per-pixel depth tables (0 = no depth), over pixels valid in both.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DepthDifference {
+    /// Pixels with depth in both.
+    pub pixels: usize,
+    /// Largest |a - b|, metres.
+    pub max_abs: f64,
+    /// Largest |a - b| / a.
+    pub max_rel: f64,
+}
+
+/// Compares table `name` (`stereo_depth`, `lidar_depth`, `gt_depth`) of two scenes: the rows
+/// (frame, camera, size) and the set of pixels with depth must be equal, else an error saying
+/// where they differ; returns how much the depths differ.
+pub fn depth_difference(a: &Tables, b: &Tables, name: &str) -> Result<DepthDifference> {
+    let (ta, tb) = (table(a, name)?, table(b, name)?);
+    let (ka, kb) = (image_keys(ta, name)?, image_keys(tb, name)?);
+    if ka != kb {
+        return Err(StageError::Input(format!(
+            "table `{name}`: rows (frame, camera, width, height) differ: {ka:?} vs {kb:?}"
+        )));
+    }
+    let ca = tables::get_list::<Float32Type>(ta, name, "depth")?;
+    let cb = tables::get_list::<Float32Type>(tb, name, "depth")?;
+    let mut d = DepthDifference::default();
+    for (i, k) in ka.iter().enumerate() {
+        let (ra, rb) = (ca.row(i), cb.row(i));
+        if ra.len() != rb.len() {
+            return Err(StageError::Input(format!(
+                "table `{name}`: frame {} camera {}: {} vs {} pixels",
+                k.0,
+                k.1,
+                ra.len(),
+                rb.len()
+            )));
+        }
+        for (p, (&x, &y)) in ra.iter().zip(rb).enumerate() {
+            if (x > 0.0) != (y > 0.0) {
+                return Err(StageError::Input(format!(
+                    "table `{name}`: frame {} camera {} pixel {p}: depth {x} vs {y}",
+                    k.0, k.1
+                )));
+            }
+            if x > 0.0 {
+                let e = (x as f64 - y as f64).abs();
+                d.pixels += 1;
+                d.max_abs = d.max_abs.max(e);
+                d.max_rel = d.max_rel.max(e / x as f64);
+            }
+        }
+    }
+    Ok(d)
+}
+
+/// KITTI-360 keeps pseudo labels, stereo depth and LiDAR for the left camera only.
+fn left_only(table: &str, frame: u32, camera: u8) -> Result<()> {
+    if camera != 0 {
+        return Err(StageError::Input(format!(
+            "table `{table}`: frame {frame} camera {camera}: only the left camera (0) can be \
+             exported in the KITTI-360 layout"
+        )));
+    }
+    Ok(())
 }
 
 /// A number in Rust's shortest round-trip form, without a negative zero.

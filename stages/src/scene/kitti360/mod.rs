@@ -45,6 +45,12 @@ use crate::{tables, InputSlot, Inputs, Progress, Result, StageError, Tables, Typ
 
 use parse::err;
 
+/// Where `pipe export scene` writes the LiDAR scans (KITTI-360's own layout); `lidar` is off
+/// by default because the scans are a large, separate download.
+pub const LIDAR_PATTERN: &str = "data_3d_raw/{seq}/velodyne_points/data/{frame}.bin";
+/// Where `pipe export scene` writes the weak stereo depth (KITTI-360 has no such directory).
+pub const STEREO_DEPTH_PATTERN: &str = "stereo_depth/{seq}/image_00/{frame}.png";
+
 /// Parameters of `kitti360_scene`. Paths are relative to `root` unless absolute.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -356,13 +362,14 @@ fn load_each<T: Send>(
         .collect()
 }
 
-/// LiDAR z-depth in the left rectified camera (nearest return per pixel, 0 < z < 100 m).
+/// LiDAR z-depth in the left rectified camera (nearest return per pixel, 0 < z <= 100 m, the
+/// synthetic scanner's range).
 fn lidar_depth(points: &[DVec3], velo_to_rect: &DAffine3, cam: &Camera) -> Vec<f32> {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut d = vec![0f32; w * h];
     for p in points {
         let q = velo_to_rect.transform_point3(*p);
-        if !(q.z > 0.0 && q.z < 100.0) {
+        if !(q.z > 0.0 && q.z <= 100.0) {
             continue;
         }
         let u = cam.fx * q.x / q.z + cam.cx;
@@ -516,7 +523,13 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     let mut lidar: Vec<(Key, Vec<f32>)> = Vec::new();
     if let Some(pat) = &p.lidar {
         let calib_path = p.file(&p.lidar_calib);
-        let cam_to_velo = parse::cam_to_velo(&calib_path, &parse::read_text(&calib_path)?)?;
+        let text = parse::read_text(&calib_path).map_err(|e| {
+            StageError::Input(format!(
+                "{e} (the camera -> velodyne calibration `lidar_calib`, needed to project the \
+                 `lidar` scans)"
+            ))
+        })?;
+        let cam_to_velo = parse::cam_to_velo(&calib_path, &text)?;
         let velo_to_rect = DAffine3::from_mat3(calib.r_rect) * cam_to_velo.inverse();
         for r in cameras.iter().filter(|r| r.camera == 0 && r.eval) {
             let pts = parse::velodyne(&p.path(pat, r.frame, 0))?;

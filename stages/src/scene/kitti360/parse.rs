@@ -160,9 +160,11 @@ pub fn perspective(path: &Path, text: &str) -> Result<Perspective> {
     let p1 = get("P_rect_01", 12)?;
     let s = get("S_rect_00", 2)?;
     let r_rect = match k.get("R_rect_00") {
-        Some(_) => {
+        Some((line, _)) => {
             let r = get("R_rect_00", 9)?;
-            DMat3::from_cols_array(&[r[0], r[3], r[6], r[1], r[4], r[7], r[2], r[5], r[8]])
+            let m = DMat3::from_cols_array(&[r[0], r[3], r[6], r[1], r[4], r[7], r[2], r[5], r[8]]);
+            check_rotation(path, &format!("line {line} `R_rect_00`"), &m)?;
+            m
         }
         None => DMat3::IDENTITY,
     };
@@ -229,21 +231,25 @@ pub fn perspective(path: &Path, text: &str) -> Result<Perspective> {
     })
 }
 
-/// `calib_cam_to_velo.txt`: one line of 12 numbers, the 3x4 unrectified camera 0 -> velodyne.
+/// `calib_cam_to_velo.txt`: one line of 12 numbers, the 3x4 rigid transform from the
+/// unrectified camera 0 to the velodyne.
 pub fn cam_to_velo(path: &Path, text: &str) -> Result<DAffine3> {
+    let at = "the 3x4 camera -> velodyne matrix";
     let v = text
         .split_whitespace()
-        .map(|t| parse_f64(path, "matrix", t))
+        .map(|t| parse_f64(path, at, t))
         .collect::<Result<Vec<f64>>>()?;
     if v.len() != 12 {
         return Err(err(
             path,
-            format!("expected 12 numbers (a 3x4 matrix), found {}", v.len()),
+            format!("{at}: expected 12 numbers, found {}", v.len()),
         ));
     }
     let mut m = v;
     m.extend([0.0, 0.0, 0.0, 1.0]);
-    affine_from_row_major(&m).map_err(|e| err(path, e))
+    let m = affine_from_row_major(&m).map_err(|e| err(path, format!("{at}: {e}")))?;
+    check_rotation(path, at, &m.matrix3)?;
+    Ok(m)
 }
 
 /// One object of the `data_3d_bboxes` XML, as written (world frame, label not yet mapped).
@@ -494,7 +500,16 @@ pub fn velodyne(path: &Path) -> Result<Vec<DVec3>> {
         .map(|(i, p)| {
             let q = DVec3::new(f(&p[0..4]), f(&p[4..8]), f(&p[8..12]));
             if !q.is_finite() {
-                return Err(err(path, format!("point {i}: non-finite coordinate")));
+                return Err(err(
+                    path,
+                    format!(
+                        "point {i} (byte {}): non-finite coordinate ({}, {}, {})",
+                        16 * i,
+                        q.x,
+                        q.y,
+                        q.z
+                    ),
+                ));
             }
             Ok(q)
         })

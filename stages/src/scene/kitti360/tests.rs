@@ -9,7 +9,8 @@ use arrow::datatypes::{Float64Type, UInt32Type, UInt8Type};
 
 use super::*;
 use crate::geometry::{cameras_from_table, primitives_from_table};
-use crate::scene::{kitti360_export, SceneParams, SyntheticScene};
+use crate::scene::kitti360_export::{self, LIDAR_DEPTH_TOLERANCE, STEREO_DEPTH_TOLERANCE_M};
+use crate::scene::{SceneParams, SyntheticScene};
 use crate::{NoProgress, Stage};
 
 fn repo() -> PathBuf {
@@ -252,12 +253,40 @@ fn every_malformed_file_of_the_corpus_is_an_error_naming_file_and_element() {
                 "expected a 4 x 4 matrix, found 3 x 4",
             ],
         ),
+        (
+            "perspective_r_rect_reflection.txt",
+            "calibration/perspective.txt",
+            &["line 6 `R_rect_00`", "not a rotation"],
+        ),
+        (
+            "velodyne_truncated.bin",
+            "data_3d_raw/seq_a/velodyne_points/data/0000000007.bin",
+            &["20 bytes", "not a whole number of points", "truncated"],
+        ),
+        (
+            "velodyne_nan.bin",
+            "data_3d_raw/seq_a/velodyne_points/data/0000000007.bin",
+            &["point 1 (byte 16)", "non-finite coordinate (12, NaN, -0.3"],
+        ),
+        (
+            "calib_cam_to_velo_11_values.txt",
+            "calibration/calib_cam_to_velo.txt",
+            &["camera -> velodyne", "expected 12 numbers, found 11"],
+        ),
+        (
+            "calib_cam_to_velo_not_rigid.txt",
+            "calibration/calib_cam_to_velo.txt",
+            &["camera -> velodyne", "not a rotation"],
+        ),
     ];
     let corpus = repo().join("tests/bad_inputs/kitti360");
     let n = std::fs::read_dir(&corpus).unwrap().count();
     assert_eq!(n, cases.len(), "every corpus file has a case");
     for (bad, target, needles) in cases {
-        let (root, p) = fixture(&format!("bad-{bad}"));
+        let (root, mut p) = fixture(&format!("bad-{bad}"));
+        if target.contains("velo") {
+            with_lidar(&mut p);
+        }
         std::fs::copy(corpus.join(bad), root.join(target)).unwrap();
         assert_error(&p, target, needles);
         std::fs::remove_dir_all(root).unwrap();
@@ -366,23 +395,31 @@ fn bad_params_are_rejected() {
     }
 }
 
-#[test]
-fn lidar_scans_project_into_the_left_camera() {
-    let (root, mut p) = fixture("lidar");
-    p.lidar = Some("data_3d_raw/{seq}/velodyne_points/data/{frame}.bin".into());
-    // calib_cam_to_velo maps camera (x, y, z) to velodyne (z + 0.1, -x - 0.2, -y - 0.3); a point
-    // 10 m ahead of camera pixel (4, 2)'s centre ray is at camera (0.125 * 10 / 4... ) etc.
-    let cam_pt = DVec3::new(0.5 / 4.0 * 10.0, 0.5 / 4.0 * 10.0, 10.0); // pixel (4, 2) centre
+/// Turns on `lidar` and writes a one-point scan for frames 3 and 7 (both evaluation frames):
+/// 10 m ahead on the ray through the centre of pixel (4, 2).
+fn with_lidar(p: &mut Kitti360Params) -> Vec<u8> {
+    p.lidar = Some(LIDAR_PATTERN.into());
+    // calib_cam_to_velo maps camera (x, y, z) to velodyne (z + 0.1, -x - 0.2, -y - 0.3);
+    // pixel (4, 2)'s centre is image point (4.5, 2.5), 0.5 px right of and below (cx, cy) =
+    // (4, 2), with fx = fy = 4.
+    let cam_pt = DVec3::new(0.5 / 4.0 * 10.0, 0.5 / 4.0 * 10.0, 10.0);
     let velo = DVec3::new(cam_pt.z + 0.1, -cam_pt.x - 0.2, -cam_pt.y - 0.3);
     let mut bytes = Vec::new();
     for v in [velo.x, velo.y, velo.z, 0.5] {
         bytes.extend((v as f32).to_le_bytes());
     }
     for f in [3u32, 7] {
-        let path = p.path(p.lidar.as_ref().unwrap(), f, 0);
+        let path = p.path(LIDAR_PATTERN, f, 0);
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
         std::fs::write(&path, &bytes).unwrap();
     }
+    bytes
+}
+
+#[test]
+fn lidar_scans_project_into_the_left_camera() {
+    let (root, mut p) = fixture("lidar");
+    let bytes = with_lidar(&mut p);
     let t = run(&p).unwrap();
     assert_eq!(t["lidar_depth"].num_rows(), 2);
     let d = tables::get_list::<arrow::datatypes::Float32Type>(
@@ -400,6 +437,16 @@ fn lidar_scans_project_into_the_left_camera() {
         &p,
         "velodyne_points/data/0000000007.bin",
         &["10 bytes", "truncated"],
+    );
+    // A missing scan of an evaluation frame; a missing calibration.
+    std::fs::remove_file(&path).unwrap();
+    assert_error(&p, "velodyne_points/data/0000000007.bin", &["cannot read"]);
+    std::fs::write(&path, &bytes).unwrap();
+    std::fs::remove_file(root.join("calibration/calib_cam_to_velo.txt")).unwrap();
+    assert_error(
+        &p,
+        "calibration/calib_cam_to_velo.txt",
+        &["cannot read", "`lidar_calib`", "`lidar`"],
     );
     std::fs::remove_dir_all(root).unwrap();
 }
@@ -421,6 +468,8 @@ fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
         name: sp.name.clone(),
         max_distance_m,
         pseudo_labels: "pseudo_labels/{seq}/image_00/%010d.png".into(),
+        stereo_depth: Some(STEREO_DEPTH_PATTERN.into()),
+        lidar: Some(LIDAR_PATTERN.into()),
         ..Default::default()
     };
     let loaded = run(&p).unwrap();
@@ -454,6 +503,15 @@ fn the_exported_synthetic_scene_loads_back_into_equal_tables() {
             .to_vec()
     };
     assert_eq!(cl(&a), cl(&b));
+
+    // Depth: stereo to the 16-bit format's 1/256 m; LiDAR (exported as velodyne points through
+    // calib_cam_to_velo and R_rect_00, re-projected) on the same pixels, to float32 rounding.
+    let diff = |name: &str| kitti360_export::depth_difference(&a, &b, name).unwrap();
+    let (stereo, lidar) = (diff("stereo_depth"), diff("lidar_depth"));
+    eprintln!("round trip: stereo depth {stereo:?}, LiDAR depth {lidar:?}");
+    assert!(stereo.pixels > 0 && lidar.pixels > 0);
+    assert!(stereo.max_abs <= STEREO_DEPTH_TOLERANCE_M, "{stereo:?}");
+    assert!(lidar.max_rel <= LIDAR_DEPTH_TOLERANCE, "{lidar:?}");
 
     // Cameras: same rows, intrinsics and poses within 1e-9 (pixels, metres).
     let (ca, cb) = (
