@@ -17,7 +17,7 @@ use crate::{
     fused::{FusedField, FusedTrainer},
     sampling::{self, RaySet, SampleBatch, SamplingParams, SplitMix},
     tables,
-    train::{LossTerm, RayBatch, RaySamples, RayTargets, TrainConfig, Trainer},
+    train::{batch_indices, LossTerm, RayBatch, RaySamples, RayTargets, TrainConfig, Trainer},
     InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage,
 };
 
@@ -118,7 +118,7 @@ fn backend(name: &str) -> Result<Backend> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -204,11 +204,16 @@ impl TypedStage for Train {
         let start = std::time::Instant::now();
         let mut log = LogColumns::default();
         for it in 0..iters {
-            let mut rng = SplitMix(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-            let ids: Vec<u32> = (0..batch)
-                .map(|_| candidates[(rng.next_u64() % candidates.len() as u64) as usize])
+            // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from
+            // a SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share
+            // all but one ray: training saw only ~iterations + batch distinct rays.)
+            let ids: Vec<u32> = batch_indices(p.train.seed, it, candidates.len(), batch)
+                .into_iter()
+                .map(|i| candidates[i])
                 .collect();
-            let samples = sampling::sample_batch(&set, &ids, &p.sampling, Some(rng.next_u64()));
+            let jitter = SplitMix(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+                .next_u64();
+            let samples = sampling::sample_batch(&set, &ids, &p.sampling, Some(jitter));
             let losses = trainer.step(&to_ray_batch(&samples))?;
             let secs = start.elapsed().as_secs_f64();
             log.push(it as u32, secs, &losses);

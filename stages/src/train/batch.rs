@@ -196,7 +196,11 @@ pub fn batch_indices(seed: u64, iteration: usize, total: usize, batch: usize) ->
     let epoch = iteration / per_epoch;
     let start = (iteration % per_epoch) * batch;
     let mut order: Vec<usize> = (0..total).collect();
-    let mut rng = SplitMix64::new(seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    // Hash the (seed, epoch) pair first: SplitMix streams seeded `k * GOLDEN` apart are the same
+    // stream shifted by k, which would make consecutive epochs' orders nearly equal.
+    let mut rng = SplitMix64::new(
+        SplitMix64::new(seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64(),
+    );
     for i in (1..total).rev() {
         order.swap(i, rng.below(i + 1));
     }
