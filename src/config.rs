@@ -813,7 +813,9 @@ fn parse_scenes(
                 ));
             }
             // (key, values) with each value's scene-name part and location.
-            let mut axes: Vec<(String, Vec<(Yaml, String, Loc)>)> = Vec::new();
+            /// One matrix key's values: (value, its scene-name part, where it is written).
+            type Axis = Vec<(Yaml, String, Loc)>;
+            let mut axes: Vec<(String, Axis)> = Vec::new();
             for (k, vals) in matrix {
                 let key = k.as_str().unwrap_or("?").to_string();
                 let kpath = format!("scenes.matrix.{key}");

@@ -460,6 +460,9 @@ fn peak_rss_bytes() -> u64 {
         .map_or(0, |kb| kb * 1024)
 }
 
+/// The manifests of a gathered slot's stage in every scene: (scene, manifest).
+type SceneManifests = Vec<(String, Box<Manifest>)>;
+
 /// Tables already read from the cache during this run, by key.
 type Loaded = Arc<Mutex<HashMap<String, Arc<Tables>>>>;
 
@@ -696,7 +699,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                     .iter()
                     .map(|(slot, up)| (slot.clone(), manifest_of(up)))
                     .collect();
-                let gathered: Vec<(String, Vec<(String, Box<Manifest>)>)> = s
+                let gathered: Vec<(String, SceneManifests)> = s
                     .gather
                     .iter()
                     .map(|(slot, ups)| {

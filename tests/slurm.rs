@@ -64,7 +64,10 @@ fn log_dir(ws: &Workspace) -> Option<std::path::PathBuf> {
 }
 
 fn squeue_jobs() -> String {
-    let out = Command::new("squeue").args(["-h", "-o", "%i %j"]).output().unwrap();
+    let out = Command::new("squeue")
+        .args(["-h", "-o", "%i %j"])
+        .output()
+        .unwrap();
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
@@ -112,7 +115,8 @@ executor:
     let status = coord.wait().unwrap();
     assert_eq!(status.code(), Some(130), "{rest:?}");
     assert!(
-        rest.iter().any(|l| l.contains(&format!("cancelled slurm job(s) {job}"))),
+        rest.iter()
+            .any(|l| l.contains(&format!("cancelled slurm job(s) {job}"))),
         "{rest:?}"
     );
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -120,7 +124,10 @@ executor:
         .lines()
         .any(|l| l.starts_with(&format!("{job}_")))
     {
-        assert!(Instant::now() < deadline, "job {job} still queued after scancel");
+        assert!(
+            Instant::now() < deadline,
+            "job {job} still queued after scancel"
+        );
         std::thread::sleep(Duration::from_millis(200));
     }
 
@@ -163,13 +170,22 @@ executor:
         String::from_utf8_lossy(&out.stderr),
     );
     assert!(out.status.success(), "{stdout}\n{stderr}");
-    assert!(stderr.contains("3 scenes: 0 up to date, 3 to run"), "{stderr}");
+    assert!(
+        stderr.contains("3 scenes: 0 up to date, 3 to run"),
+        "{stderr}"
+    );
     assert!(stderr.contains("scene seed2: try 1 failed"), "{stderr}");
-    assert!(stderr.contains("submitted job array") && stderr.contains("try 2"), "{stderr}");
+    assert!(
+        stderr.contains("submitted job array") && stderr.contains("try 2"),
+        "{stderr}"
+    );
     for sc in ["seed1", "seed2", "seed3"] {
         assert!(stderr.contains(&format!("scene {sc}: done")), "{stderr}");
     }
-    assert!(stdout.contains("summary") && stdout.contains("ran"), "{stdout}");
+    assert!(
+        stdout.contains("summary") && stdout.contains("ran"),
+        "{stdout}"
+    );
     // The killed try left nothing partial: every entry verifies, no temporary entry or lock.
     ws.assert_every_entry_verifies("a killed Slurm task and its retry");
     assert_eq!(fs::read_dir(ws.cache().join("tmp")).unwrap().count(), 0);
@@ -181,7 +197,10 @@ executor:
     let dir = log_dir(&ws).unwrap();
     assert!(dir.join("seed2.try2.log").exists());
     let st = ws.status(&[]);
-    for line in st.lines().filter(|l| l.contains('@') || l.starts_with("summary")) {
+    for line in st
+        .lines()
+        .filter(|l| l.contains('@') || l.starts_with("summary"))
+    {
         assert!(line.contains("fresh"), "{st}");
     }
     let (code, _, err) = ws.cmd("export", &["summary", "--to", "out"]);
@@ -192,7 +211,10 @@ executor:
     // A second run submits nothing.
     let (code, out2, err2) = ws.cmd("run", &["--executor", "slurm"]);
     assert_eq!(code, 0, "{err2}");
-    assert!(err2.contains("nothing submitted") && !err2.contains("submitted job array"), "{err2}");
+    assert!(
+        err2.contains("nothing submitted") && !err2.contains("submitted job array"),
+        "{err2}"
+    );
     assert!(out2.contains("3 scenes (0 ran, 3 cached)"), "{out2}");
     eprintln!(
         "3-scene tiny matrix through Slurm (one task killed and retried): {:.1}s; whole test {:.1}s",

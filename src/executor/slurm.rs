@@ -49,6 +49,27 @@ fn slurm(cmd: &str, args: &[String]) -> Result<String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
+/// Array indices as sbatch writes them: runs of consecutive indices as `a-b` (`0-2,5`).
+fn array_ranges(indices: &[usize]) -> String {
+    let mut sorted = indices.to_vec();
+    sorted.sort_unstable();
+    let mut parts: Vec<String> = Vec::new();
+    let mut k = 0;
+    while k < sorted.len() {
+        let start = sorted[k];
+        while k + 1 < sorted.len() && sorted[k + 1] == sorted[k] + 1 {
+            k += 1;
+        }
+        parts.push(if sorted[k] == start {
+            start.to_string()
+        } else {
+            format!("{start}-{}", sorted[k])
+        });
+        k += 1;
+    }
+    parts.join(",")
+}
+
 impl Slurm {
     /// `args`: the `pipe` arguments up to `--scene`; `scenes`: the array's scenes by index;
     /// `dir`: where the task script and logs go (on the shared file system).
@@ -107,11 +128,7 @@ impl Slurm {
 
     /// sbatch's arguments for these array indices and try.
     fn sbatch_args(&self, indices: &[usize], attempt: u32) -> Vec<String> {
-        let list = indices
-            .iter()
-            .map(|i| i.to_string())
-            .collect::<Vec<_>>()
-            .join(",");
+        let list = array_ranges(indices);
         let throttle = self
             .cfg
             .max_parallel
@@ -339,5 +356,17 @@ impl Backend for Slurm {
             1 => format!("slurm job {}", ids[0]),
             _ => format!("slurm jobs {}", ids.join(",")),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn array_indices_are_written_as_ranges() {
+        assert_eq!(array_ranges(&[0, 1, 2]), "0-2");
+        assert_eq!(array_ranges(&[5, 0, 1, 3]), "0-1,3,5");
+        assert_eq!(array_ranges(&[4]), "4");
     }
 }
