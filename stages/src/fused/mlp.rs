@@ -36,14 +36,8 @@ pub fn gemm(m: usize, k: usize, n: usize, a: View, b: View, beta: f32, c: &mut [
     if m == 0 || n == 0 {
         return;
     }
-    assert!(
-        k == 0 || a.data.len() > (m - 1) * a.rs + (k - 1) * a.cs,
-        "gemm: a too short"
-    );
-    assert!(
-        k == 0 || b.data.len() > (k - 1) * b.rs + (n - 1) * b.cs,
-        "gemm: b too short"
-    );
+    assert!(k == 0 || a.data.len() > (m - 1) * a.rs + (k - 1) * a.cs, "gemm: a too short");
+    assert!(k == 0 || b.data.len() > (k - 1) * b.rs + (n - 1) * b.cs, "gemm: b too short");
     assert!(c.len() >= (m - 1) * ldc + n, "gemm: c too short");
     if k == 0 {
         c.chunks_mut(ldc)
@@ -101,7 +95,13 @@ pub struct Layer {
 
 /// Forward through `layers` from `x` (rows `n`). `acts[l]` receives layer `l`'s output
 /// (post-ReLU for hidden layers, linear for the last). Buffers only grow.
-pub fn forward(layers: &[Layer], params: &[&[f32]], n: usize, x: View, acts: &mut [Vec<f32>]) {
+pub fn forward(
+    layers: &[Layer],
+    params: &[&[f32]],
+    n: usize,
+    x: View,
+    acts: &mut [Vec<f32>],
+) {
     let last = layers.len() - 1;
     for (l, layer) in layers.iter().enumerate() {
         let (before, rest) = acts.split_at_mut(l);

@@ -139,11 +139,7 @@ impl FusedField {
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let rays = directions.len() / 3;
         let n = rays * samples;
-        assert_eq!(
-            positions.len(),
-            n * 3,
-            "positions must be [rays, samples, 3]"
-        );
+        assert_eq!(positions.len(), n * 3, "positions must be [rays, samples, 3]");
         let c = self.spec.num_classes;
         let chunk = 256;
         let params = self.params();
@@ -474,7 +470,9 @@ impl FusedTrainer {
             .par_iter_mut()
             .zip(&bounds)
             .for_each(|(w, &(r0, r1))| {
-                w.forward_step(field, &params, batch, r0, r1, heads, config, sky, &weights);
+                w.forward_step(
+                    field, &params, batch, r0, r1, heads, config, sky, &weights,
+                );
             });
         let mut sums = Sums::default();
         for w in &self.work[..parts] {
@@ -1021,9 +1019,7 @@ mod tests {
         }
         for w in &mut weights[1..] {
             if w.name.ends_with("bias") {
-                w.values
-                    .iter_mut()
-                    .for_each(|v| *v = rng.uniform(-0.2, 0.2));
+                w.values.iter_mut().for_each(|v| *v = rng.uniform(-0.2, 0.2));
             }
         }
         let burn = spec
@@ -1141,10 +1137,7 @@ mod tests {
         let input = burn.prepare(&s.positions, Some(&s.directions), s.samples);
         let o = burn.forward(
             &input,
-            &[
-                crate::field::FieldHead::Rgb,
-                crate::field::FieldHead::Semantics,
-            ],
+            &[crate::field::FieldHead::Rgb, crate::field::FieldHead::Semantics],
         );
         let read1 = |t: burn::tensor::Tensor<1>| t.into_data().try_to_vec::<f32>().unwrap();
         let read2 = |t: burn::tensor::Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
@@ -1155,10 +1148,7 @@ mod tests {
         ] {
             assert_eq!(a.len(), b.len(), "{name}");
             for (x, y) in a.iter().zip(&b) {
-                assert!(
-                    (x - y).abs() <= 1e-4 * y.abs().max(1.0),
-                    "{name}: {x} vs {y}"
-                );
+                assert!((x - y).abs() <= 1e-4 * y.abs().max(1.0), "{name}: {x} vs {y}");
             }
         }
     }

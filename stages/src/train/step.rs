@@ -324,11 +324,7 @@ pub(crate) fn reference_gradients(
         .map(|(t, v)| {
             (
                 *t,
-                v.clone()
-                    .detach()
-                    .into_data()
-                    .try_to_vec::<f32>()
-                    .expect("f32")[0],
+                v.clone().detach().into_data().try_to_vec::<f32>().expect("f32")[0],
             )
         })
         .collect();
