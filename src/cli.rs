@@ -15,6 +15,7 @@ use crate::{
     bench,
     config::{self, Override, Pipeline},
     dag::Dag,
+    executor::{self, ExecOptions, ExecutorKind},
     runner::{self, Outcome, RunOptions, State},
     store::{Entry, Store},
 };
@@ -97,6 +98,19 @@ pub enum Command {
         /// Hash every cached file, even those unchanged since they were last verified.
         #[arg(long)]
         verify: bool,
+        /// Run only this scene of a pipeline with `scenes:` (no dataset stages). Repeatable.
+        #[arg(long = "scene", value_name = "NAME")]
+        scene: Vec<String>,
+        /// `all` (every scene, then the dataset stages: the default) or scenes A,B,...
+        #[arg(long, value_name = "all|A,B,...")]
+        scenes: Option<String>,
+        /// Where the scenes run: `local` (this process, or --jobs N worker processes) or
+        /// `slurm` (one job array; resources from `executor.slurm` of the pipeline file).
+        #[arg(long, value_enum, default_value = "local")]
+        executor: ExecutorKind,
+        /// Further tries of a scene whose task failed (executors with worker processes).
+        #[arg(long, default_value_t = 1)]
+        retries: u32,
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
@@ -105,6 +119,9 @@ pub enum Command {
         /// Hash every cached file, even those unchanged since they were last verified.
         #[arg(long)]
         verify: bool,
+        /// Only the stages of this scene. Repeatable.
+        #[arg(long = "scene", value_name = "NAME")]
+        scene: Vec<String>,
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
@@ -193,10 +210,24 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             jobs,
             keep_going,
             verify,
+            scene,
+            scenes,
+            executor,
+            retries,
             pipeline,
         } => {
             let p = Arc::new(load(&pipeline)?);
+            let mut named = scene;
+            match scenes.as_deref() {
+                None | Some("all") => {}
+                Some(list) => named.extend(list.split(',').map(str::to_string)),
+            }
             let opts = RunOptions {
+                scenes: if named.is_empty() {
+                    runner::Scenes::All
+                } else {
+                    runner::Scenes::Named(named)
+                },
                 until,
                 only,
                 force,
@@ -207,9 +238,33 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                 keep_going,
                 verify,
             };
+            let several = match &opts.scenes {
+                runner::Scenes::Named(list) => list.len() > 1,
+                _ => p.scenes.len() > 1,
+            };
+            if executor == ExecutorKind::Slurm && p.scenes.is_empty() {
+                return Err(usage(format!(
+                    "--executor slurm runs the scenes of a scene matrix, and {} declares no `scenes:`",
+                    p.file.display()
+                )));
+            }
+            if !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several)) {
+                let exec = ExecOptions {
+                    kind: executor,
+                    jobs,
+                    retries,
+                    run: opts,
+                    set: pipeline.set.clone(),
+                };
+                return executor::run_scenes(p, &exec).map_err(usage_if_selection);
+            }
             cmd_run(p, &opts)
         }
-        Command::Status { verify, pipeline } => cmd_status(&load(&pipeline)?, verify),
+        Command::Status {
+            verify,
+            scene,
+            pipeline,
+        } => cmd_status(&load(&pipeline)?, verify, &scene),
         Command::Dag { dot, pipeline } => cmd_dag(&load(&pipeline)?, dot),
         Command::Show {
             stage,
@@ -242,29 +297,52 @@ fn cmd_run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<i32> {
         .worker_threads(1)
         .enable_all()
         .build()?;
-    let rep = rt.block_on(runner::run(p, opts)).map_err(|e| {
-        // Selection problems are usage errors.
-        let msg = format!("{e:#}");
-        if msg.contains("no stage named")
-            || msg.contains("cannot be combined")
-            || msg.contains("cannot run only")
-        {
-            usage(msg)
-        } else {
-            e
-        }
-    })?;
+    let rep = rt
+        .block_on(runner::run(p, opts))
+        .map_err(usage_if_selection)?;
     print!("{}", runner::summary(&rep));
     Ok(if rep.failed { 1 } else { 0 })
 }
 
-fn cmd_status(p: &Pipeline, verify: bool) -> Result<i32> {
+/// Selection problems (unknown stage or scene, impossible combinations) are usage errors.
+fn usage_if_selection(e: anyhow::Error) -> anyhow::Error {
+    let msg = format!("{e:#}");
+    if msg.contains("no stage named")
+        || msg.contains("no scene named")
+        || msg.contains("declares no scenes")
+        || msg.contains("cannot be combined")
+        || msg.contains("cannot run only")
+    {
+        usage(msg)
+    } else {
+        e
+    }
+}
+
+fn cmd_status(p: &Pipeline, verify: bool, scenes: &[String]) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open_existing(&p.cache_dir);
     let res = runner::resolve(p, &dag, &store, verify)?;
+    for sc in scenes {
+        if !p.scenes.contains(sc) {
+            return Err(usage(format!(
+                "--scene {sc}: no scene named `{sc}` in {} (scenes: {})",
+                p.file.display(),
+                p.scenes.join(", ")
+            )));
+        }
+    }
+    let shown = |i: usize| {
+        scenes.is_empty()
+            || p.stages[i]
+                .scene
+                .as_ref()
+                .is_some_and(|sc| scenes.contains(sc))
+    };
     let rows: Vec<Vec<String>> = dag
         .order
         .iter()
+        .filter(|&&i| shown(i))
         .map(|&i| {
             let s = &p.stages[i];
             let (state, why) = match &res[i].state {
@@ -284,6 +362,34 @@ fn cmd_status(p: &Pipeline, verify: bool) -> Result<i32> {
         "{}",
         runner::text_table(&["stage", "kind", "state", "why"], &rows)
     );
+    if !p.scenes.is_empty() {
+        // One line per scene: what a `pipe run --executor ...` would hand out.
+        let rows: Vec<Vec<String>> = p
+            .scenes
+            .iter()
+            .filter(|sc| scenes.is_empty() || scenes.contains(sc))
+            .map(|sc| {
+                let idx = p.scene_stages(sc);
+                let stale: Vec<&str> = idx
+                    .iter()
+                    .filter(|&&i| !matches!(res[i].state, State::Fresh(_)))
+                    .map(|&i| p.stages[i].template.as_str())
+                    .collect();
+                let state = if stale.is_empty() { "fresh" } else { "stale" };
+                vec![
+                    sc.clone(),
+                    state.to_string(),
+                    format!("{}/{}", idx.len() - stale.len(), idx.len()),
+                    stale.join(", "),
+                ]
+            })
+            .collect();
+        println!();
+        print!(
+            "{}",
+            runner::text_table(&["scene", "state", "fresh stages", "stale"], &rows)
+        );
+    }
     Ok(0)
 }
 
@@ -295,7 +401,7 @@ fn cmd_dag(p: &Pipeline, dot: bool) -> Result<i32> {
     }
     for &i in &dag.order {
         let s = &p.stages[i];
-        let ins: Vec<String> = s
+        let mut ins: Vec<String> = s
             .inputs
             .iter()
             .map(|(slot, up)| {
@@ -306,6 +412,12 @@ fn cmd_dag(p: &Pipeline, dot: bool) -> Result<i32> {
                 }
             })
             .collect();
+        for (slot, ups) in &s.gather {
+            let template = ups
+                .first()
+                .map_or("?", |(_, up)| up.split('@').next().unwrap_or(up));
+            ins.push(format!("{slot}={template}@* ({} scenes)", ups.len()));
+        }
         if ins.is_empty() {
             println!("{} ({})", s.name, s.kind.kind());
         } else {
@@ -426,7 +538,7 @@ fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
 fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open(&p.cache_dir)?;
-    let _lock = crate::store::RunLock::acquire(store.root(), false)?;
+    let _lock = crate::store::RunLock::acquire(store.root(), false, true)?;
     let res = runner::resolve(p, &dag, &store, false)?;
     let mut keep: BTreeSet<String> = res
         .iter()

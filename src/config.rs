@@ -4,6 +4,8 @@
 //!
 //! ```yaml
 //! cache: .pipe              # optional, relative to this file
+//! scenes:                   # optional: a scene matrix (or a list, see below)
+//!   matrix: {scene.seed: [1, 2], scene.noise: [0.5, 1.0]}
 //! stages:
 //!   scene:
 //!     uses: synthetic_scene # a kind from the registry (`pipe kinds`)
@@ -11,10 +13,23 @@
 //!   rays:
 //!     uses: intersect
 //!     inputs: {scene: scene}  # input slot -> stage instance
+//! dataset:                  # with `scenes:` only: stages run once over every scene
+//!   summary:
+//!     uses: aggregate
+//!     inputs: {evaluate: evaluate}  # gathers `evaluate` of every scene
+//! executor:                 # optional: resources of `pipe run --executor slurm`
+//!   slurm: {partition: gpu, gpus: 1, time: "02:00:00"}
 //! ```
+//!
+//! With `scenes:`, every stage under `stages:` is a template instantiated once per scene as
+//! `STAGE@SCENE` (inputs renamed to the same scene), with the scene's parameter settings
+//! applied. `scenes:` is either `matrix:` (every combination of the listed values; scene names
+//! like `seed1-noise0.5`) or a list of `{name: NAME, set: {STAGE.PARAM[.FIELD...]: VALUE}}`.
+//! A `dataset:` stage's input that names a template stage *gathers* it: the stage receives, for
+//! each table the slot reads, the rows of every scene with a leading `scene` column.
 
 use std::{
-    collections::{BTreeMap, HashMap},
+    collections::{BTreeMap, BTreeSet, HashMap},
     fmt,
     path::{Path, PathBuf},
 };
@@ -65,6 +80,13 @@ impl std::error::Error for ConfigError {}
 
 /// One stage instance, validated.
 pub struct StageDecl {
+    /// The scene this instance belongs to (`None`: a plain or dataset-level stage).
+    pub scene: Option<String>,
+    /// The name of the stage in the file (`train` for the instance `train@seed1`).
+    pub template: String,
+    /// Gathered input slots of a dataset stage: slot -> (scene, stage instance) for every
+    /// scene, in scene order.
+    pub gather: BTreeMap<String, Vec<(String, String)>>,
     pub name: String,
     pub kind: Box<dyn Stage>,
     /// Canonical parameters: every param of the kind, defaults filled in, serialised by the
@@ -80,14 +102,85 @@ pub struct Pipeline {
     pub file: PathBuf,
     /// Cache directory (absolute or relative to the working directory).
     pub cache_dir: PathBuf,
-    /// Stage instances in file order.
+    /// Stage instances in file order (scene by scene, then the dataset stages).
     pub stages: Vec<StageDecl>,
+    /// Scene names in file order; empty when the file declares no `scenes:`.
+    pub scenes: Vec<String>,
+    /// `executor.slurm` of the file.
+    pub slurm: SlurmConfig,
 }
 
 impl Pipeline {
     pub fn index_of(&self, name: &str) -> Option<usize> {
         self.stages.iter().position(|s| s.name == name)
     }
+
+    /// Indices of the stage instances of `scene`.
+    pub fn scene_stages(&self, scene: &str) -> Vec<usize> {
+        (0..self.stages.len())
+            .filter(|&i| self.stages[i].scene.as_deref() == Some(scene))
+            .collect()
+    }
+
+    /// Indices of the dataset-level stages (those of no scene, in a scene pipeline).
+    pub fn dataset_stages(&self) -> Vec<usize> {
+        if self.scenes.is_empty() {
+            return Vec::new();
+        }
+        (0..self.stages.len())
+            .filter(|&i| self.stages[i].scene.is_none())
+            .collect()
+    }
+
+    /// Instances named `name`: the stage itself, or a template's instance in each of `scenes`.
+    pub fn instances(&self, name: &str, scenes: &[String]) -> Vec<usize> {
+        if let Some(i) = self.index_of(name) {
+            return vec![i];
+        }
+        (0..self.stages.len())
+            .filter(|&i| {
+                let s = &self.stages[i];
+                s.template == name && s.scene.as_ref().is_some_and(|sc| scenes.contains(sc))
+            })
+            .collect()
+    }
+}
+
+impl StageDecl {
+    /// Every upstream stage instance, plain and gathered.
+    pub fn upstream_names(&self) -> impl Iterator<Item = &String> {
+        self.inputs
+            .values()
+            .chain(self.gather.values().flatten().map(|(_, up)| up))
+    }
+}
+
+/// `executor.slurm` of a pipeline file: what `pipe run --executor slurm` asks for per task.
+#[derive(Debug, Clone, Default, serde::Deserialize, serde::Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SlurmConfig {
+    /// `--partition`.
+    pub partition: Option<String>,
+    /// `--cpus-per-task`.
+    pub cpus_per_task: Option<u32>,
+    /// GPUs per task (`--gres=gpu:N`).
+    pub gpus: Option<u32>,
+    /// `--mem` (e.g. `16G`).
+    pub mem: Option<String>,
+    /// `--time` (e.g. `02:00:00`).
+    pub time: Option<String>,
+    /// At most this many tasks of the array at once (`--array=...%N`).
+    pub max_parallel: Option<u32>,
+    /// `--job-name` (default `pipe`).
+    pub job_name: Option<String>,
+    /// More sbatch options, passed as they are (e.g. `--account=proj`, `--qos=normal`).
+    pub sbatch_args: Vec<String>,
+    /// Shell lines each task runs before `pipe` (e.g. `module load cuda`).
+    pub setup: Option<String>,
+    /// The `pipe` binary on the compute nodes (default: the coordinator's own binary).
+    pub pipe: Option<String>,
+    /// Seconds between two looks at the queue (default 5).
+    pub poll_s: Option<f64>,
 }
 
 /// A `--set stage.param=value` override; the value is parsed as YAML.
@@ -238,7 +331,7 @@ impl Locations {
     }
 }
 
-const TOP_KEYS: &[&str] = &["cache", "stages"];
+const TOP_KEYS: &[&str] = &["cache", "scenes", "stages", "dataset", "executor"];
 const STAGE_KEYS: &[&str] = &["uses", "params", "inputs", "doc"];
 
 struct Ctx<'a> {
@@ -380,6 +473,9 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
     };
     let mut cache = None;
     let mut stages_yaml = None;
+    let mut scenes_yaml = None;
+    let mut dataset_yaml = None;
+    let mut executor_yaml = None;
     for (k, v) in top {
         let key = k.as_str().unwrap_or("?");
         match key {
@@ -395,6 +491,9 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
                 }
             },
             "stages" => stages_yaml = Some(v),
+            "scenes" => scenes_yaml = Some(v),
+            "dataset" => dataset_yaml = Some(v),
+            "executor" => executor_yaml = Some(v),
             other => {
                 return Err(cx.err(
                     cx.locs.key(other),
@@ -436,20 +535,41 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
         }
     };
 
-    for o in overrides {
-        if !stages_map.keys().any(|k| k.as_str() == Some(&o.stage)) {
-            return Err(ConfigError {
-                file: file.to_path_buf(),
-                loc: Loc::CommandLine(o.arg.clone()),
-                stage: Some(o.stage.clone()),
-                key: None,
-                message: "no such stage".into(),
-            });
+    let slurm = match executor_yaml {
+        None => SlurmConfig::default(),
+        Some(v) => executor_config(&cx, v)?,
+    };
+    let scenes = match scenes_yaml {
+        None => Vec::new(),
+        Some(v) => parse_scenes(&cx, v, stages_map)?,
+    };
+    let dataset_map = match dataset_yaml {
+        None | Some(Yaml::Null) => None,
+        Some(_) if scenes.is_empty() => {
+            return Err(cx.err(
+                cx.locs.key("dataset"),
+                None,
+                Some("dataset"),
+                "dataset stages need a `scenes:` section (they run over every scene)",
+            ))
         }
-    }
+        Some(Yaml::Mapping(m)) => Some(m),
+        Some(other) => {
+            return Err(cx.err(
+                cx.locs.value("dataset"),
+                None,
+                Some("dataset"),
+                format!(
+                    "expected a mapping of stage name -> stage, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    };
 
-    let mut stages = Vec::new();
-    for (k, v) in stages_map {
+    // Every name a `--set` may address: stages, dataset stages and stage instances.
+    let mut names: Vec<String> = Vec::new();
+    for (k, _) in stages_map.iter().chain(dataset_map.into_iter().flatten()) {
         let name = match k.as_str() {
             Some(n) if valid_name(n) => n.to_string(),
             _ => {
@@ -464,11 +584,80 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
                 ))
             }
         };
-        let mine: Vec<&Override> = overrides.iter().filter(|o| o.stage == name).collect();
-        stages.push(stage_decl(&cx, &name, v, &mine)?);
+        if names.contains(&name) {
+            return Err(cx.err(
+                cx.locs.key(&format!("dataset.{name}")),
+                Some(&name),
+                None,
+                "a dataset stage cannot have the name of a stage under `stages:`",
+            ));
+        }
+        names.push(name);
     }
+    let templates: Vec<String> = stages_map
+        .keys()
+        .filter_map(|k| k.as_str().map(String::from))
+        .collect();
+    for t in &templates {
+        for sc in &scenes {
+            names.push(format!("{t}@{}", sc.name));
+        }
+    }
+    let overrides = overrides
+        .iter()
+        .map(|o| resolve_override(file, o, &names))
+        .collect::<Result<Vec<_>, _>>()?;
 
-    check_inputs(&cx, &stages)?;
+    // The stages as written (templates when there are scenes), validated once.
+    let mut stages = Vec::new();
+    for (k, v) in stages_map {
+        let name = k.as_str().expect("checked above");
+        let mine: Vec<&Override> = overrides.iter().filter(|o| o.stage == name).collect();
+        stages.push(stage_decl(
+            &cx,
+            name,
+            &format!("stages.{name}"),
+            v,
+            &[],
+            &mine,
+        )?);
+    }
+    let mut dataset = Vec::new();
+    for (k, v) in dataset_map.into_iter().flatten() {
+        let name = k.as_str().expect("checked above");
+        let mine: Vec<&Override> = overrides.iter().filter(|o| o.stage == name).collect();
+        dataset.push(stage_decl(
+            &cx,
+            name,
+            &format!("dataset.{name}"),
+            v,
+            &[],
+            &mine,
+        )?);
+    }
+    check_inputs(&cx, &stages, &[], "stages")?;
+    check_inputs(&cx, &dataset, &stages, "dataset")?;
+
+    if !scenes.is_empty() {
+        stages = expand_scenes(&cx, stages_map, &scenes, &overrides)?;
+        for d in &mut dataset {
+            let gathered: Vec<String> = d
+                .inputs
+                .iter()
+                .filter(|(_, up)| templates.contains(up))
+                .map(|(slot, _)| slot.clone())
+                .collect();
+            for slot in gathered {
+                let up = d.inputs.remove(&slot).expect("listed");
+                let all = scenes
+                    .iter()
+                    .map(|sc| (sc.name.clone(), format!("{up}@{}", sc.name)))
+                    .collect();
+                d.gather.insert(slot, all);
+            }
+        }
+        stages.extend(dataset);
+    }
 
     let cache_dir = match cache {
         Some(c) => file.parent().unwrap_or(Path::new(".")).join(c),
@@ -478,7 +667,386 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
         file: file.to_path_buf(),
         cache_dir,
         stages,
+        scenes: scenes.into_iter().map(|s| s.name).collect(),
+        slurm,
     })
+}
+
+/// An `--set` override with its stage resolved among `names` (a scene name may hold `.`, so
+/// the longest stage name that prefixes `STAGE.PARAM` wins).
+fn resolve_override(file: &Path, o: &Override, names: &[String]) -> Result<Override, ConfigError> {
+    let full = format!("{}.{}", o.stage, o.param);
+    let best = names
+        .iter()
+        .filter(|n| full.len() > n.len() + 1 && full.starts_with(n.as_str()))
+        .filter(|n| full.as_bytes()[n.len()] == b'.')
+        .max_by_key(|n| n.len());
+    match best {
+        Some(n) => Ok(Override {
+            stage: n.clone(),
+            param: full[n.len() + 1..].to_string(),
+            ..o.clone()
+        }),
+        None => Err(ConfigError {
+            file: file.to_path_buf(),
+            loc: Loc::CommandLine(o.arg.clone()),
+            stage: Some(o.stage.clone()),
+            key: None,
+            message: "no such stage".into(),
+        }),
+    }
+}
+
+/// One parameter setting of a scene: `STAGE.PARAM[.FIELD...]: VALUE`.
+struct SceneSet {
+    stage: String,
+    /// PARAM and the fields below it.
+    path: Vec<String>,
+    value: Yaml,
+    loc: Loc,
+}
+
+/// A scene of the matrix or the list.
+struct SceneDecl {
+    name: String,
+    sets: Vec<SceneSet>,
+}
+
+fn valid_scene_name(n: &str) -> bool {
+    !n.is_empty()
+        && n.chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
+}
+
+/// Parses `STAGE.PARAM[.FIELD...]` of a scene setting; the stage must be under `stages:`.
+fn scene_set(
+    cx: &Ctx,
+    key: &str,
+    value: &Yaml,
+    loc: Loc,
+    templates: &serde_yaml::Mapping,
+) -> Result<SceneSet, ConfigError> {
+    let parts: Vec<&str> = key.split('.').collect();
+    if parts.len() < 2 || parts.iter().any(|p| p.is_empty()) {
+        return Err(cx.err(
+            loc,
+            None,
+            Some(key),
+            "expected STAGE.PARAM[.FIELD...] (a parameter of a stage under `stages:`)",
+        ));
+    }
+    if !templates.keys().any(|k| k.as_str() == Some(parts[0])) {
+        let known: Vec<&str> = templates.keys().filter_map(|k| k.as_str()).collect();
+        return Err(cx.err(
+            loc,
+            None,
+            Some(key),
+            format!(
+                "no stage `{}` under `stages:` (stages: {})",
+                parts[0],
+                known.join(", ")
+            ),
+        ));
+    }
+    Ok(SceneSet {
+        stage: parts[0].to_string(),
+        path: parts[1..].iter().map(|p| p.to_string()).collect(),
+        value: value.clone(),
+        loc,
+    })
+}
+
+/// A matrix value as part of a scene name (`0.5`, `true`, `street_a`).
+fn name_part(v: &Yaml) -> Option<String> {
+    let s = match v {
+        Yaml::Number(n) => n.to_string(),
+        Yaml::String(s) => s.clone(),
+        Yaml::Bool(b) => b.to_string(),
+        _ => return None,
+    };
+    Some(
+        s.chars()
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.') {
+                    c
+                } else {
+                    '_'
+                }
+            })
+            .collect(),
+    )
+}
+
+/// `scenes:`: a `matrix:` of values, or a list of named scenes with their settings.
+fn parse_scenes(
+    cx: &Ctx,
+    v: &Yaml,
+    templates: &serde_yaml::Mapping,
+) -> Result<Vec<SceneDecl>, ConfigError> {
+    let bad = |loc: Loc, key: Option<&str>, msg: String| cx.err(loc, None, key, msg);
+    let mut out: Vec<SceneDecl> = Vec::new();
+    match v {
+        Yaml::Mapping(m) => {
+            for k in m.keys() {
+                let key = k.as_str().unwrap_or("?");
+                if key != "matrix" {
+                    return Err(bad(
+                        cx.locs.key(&format!("scenes.{key}")),
+                        Some(key),
+                        "unknown key (expected `matrix:`, or a list of `{name, set}` scenes)"
+                            .into(),
+                    ));
+                }
+            }
+            let Some(Yaml::Mapping(matrix)) = m.get("matrix") else {
+                return Err(bad(
+                    cx.locs.value("scenes.matrix"),
+                    Some("matrix"),
+                    "expected a mapping of STAGE.PARAM -> list of values".into(),
+                ));
+            };
+            if matrix.is_empty() {
+                return Err(bad(
+                    cx.locs.key("scenes.matrix"),
+                    Some("matrix"),
+                    "the matrix is empty".into(),
+                ));
+            }
+            // (key, values) with each value's scene-name part and location.
+            /// One matrix key's values: (value, its scene-name part, where it is written).
+            type Axis = Vec<(Yaml, String, Loc)>;
+            let mut axes: Vec<(String, Axis)> = Vec::new();
+            for (k, vals) in matrix {
+                let key = k.as_str().unwrap_or("?").to_string();
+                let kpath = format!("scenes.matrix.{key}");
+                let Yaml::Sequence(list) = vals else {
+                    return Err(bad(
+                        cx.locs.value(&kpath),
+                        Some(&key),
+                        format!("expected a list of values, found {}", yaml_type(vals)),
+                    ));
+                };
+                if list.is_empty() {
+                    return Err(bad(
+                        cx.locs.value(&kpath),
+                        Some(&key),
+                        "expected at least one value".into(),
+                    ));
+                }
+                let mut axis = Vec::new();
+                for (j, x) in list.iter().enumerate() {
+                    let loc = cx.locs.value(&format!("{kpath}.{j}"));
+                    let part = name_part(x).ok_or_else(|| {
+                        bad(
+                            loc.clone(),
+                            Some(&key),
+                            format!(
+                                "matrix values must be numbers, strings or booleans, found {} (list the scenes instead for structured values)",
+                                yaml_type(x)
+                            ),
+                        )
+                    })?;
+                    axis.push((x.clone(), part, loc));
+                }
+                scene_set(cx, &key, &Yaml::Null, cx.locs.key(&kpath), templates)?;
+                axes.push((key, axis));
+            }
+            // Every combination, the first key varying slowest.
+            let mut combos: Vec<Vec<usize>> = vec![vec![]];
+            for (_, axis) in &axes {
+                combos = combos
+                    .into_iter()
+                    .flat_map(|c| {
+                        (0..axis.len()).map(move |j| {
+                            let mut c = c.clone();
+                            c.push(j);
+                            c
+                        })
+                    })
+                    .collect();
+            }
+            for combo in combos {
+                let mut parts = Vec::new();
+                let mut sets = Vec::new();
+                for ((key, axis), &j) in axes.iter().zip(&combo) {
+                    let (value, part, loc) = &axis[j];
+                    let last = key.rsplit('.').next().unwrap_or(key);
+                    parts.push(format!("{last}{part}"));
+                    sets.push(scene_set(cx, key, value, loc.clone(), templates)?);
+                }
+                out.push(SceneDecl {
+                    name: parts.join("-"),
+                    sets,
+                });
+            }
+        }
+        Yaml::Sequence(list) if !list.is_empty() => {
+            for (i, item) in list.iter().enumerate() {
+                let base = format!("scenes.{i}");
+                let Yaml::Mapping(im) = item else {
+                    return Err(bad(
+                        cx.locs.value(&base),
+                        None,
+                        format!(
+                            "expected a scene `{{name: NAME, set: {{STAGE.PARAM: VALUE}}}}`, found {}",
+                            yaml_type(item)
+                        ),
+                    ));
+                };
+                for k in im.keys() {
+                    let key = k.as_str().unwrap_or("?");
+                    if key != "name" && key != "set" {
+                        return Err(bad(
+                            cx.locs.key(&format!("{base}.{key}")),
+                            Some(key),
+                            "unknown key of a scene (expected one of: name, set)".into(),
+                        ));
+                    }
+                }
+                let name = match im.get("name") {
+                    Some(Yaml::String(n)) if valid_scene_name(n) => n.clone(),
+                    Some(other) => {
+                        return Err(bad(
+                            cx.locs.value(&format!("{base}.name")),
+                            Some("name"),
+                            format!(
+                                "bad scene name {}: use letters, digits, `_`, `-` and `.`",
+                                describe(&serde_json::to_value(other).unwrap_or(Value::Null))
+                            ),
+                        ))
+                    }
+                    None => {
+                        return Err(bad(
+                            cx.locs.value(&base),
+                            Some("name"),
+                            "missing: every scene of the list needs a `name:`".into(),
+                        ))
+                    }
+                };
+                let mut sets = Vec::new();
+                match im.get("set") {
+                    None | Some(Yaml::Null) => {}
+                    Some(Yaml::Mapping(sm)) => {
+                        for (k, x) in sm {
+                            let key = k.as_str().unwrap_or("?");
+                            let loc = cx.locs.key(&format!("{base}.set.{key}"));
+                            sets.push(scene_set(cx, key, x, loc, templates)?);
+                        }
+                    }
+                    Some(other) => {
+                        return Err(bad(
+                            cx.locs.value(&format!("{base}.set")),
+                            Some("set"),
+                            format!(
+                                "expected a mapping of STAGE.PARAM -> value, found {}",
+                                yaml_type(other)
+                            ),
+                        ))
+                    }
+                }
+                out.push(SceneDecl { name, sets });
+            }
+        }
+        other => {
+            return Err(bad(
+                cx.locs.value("scenes"),
+                Some("scenes"),
+                format!(
+                    "expected `matrix:` or a non-empty list of scenes, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    }
+    let mut seen = BTreeSet::new();
+    for s in &out {
+        if !seen.insert(s.name.as_str()) {
+            return Err(cx.err(
+                cx.locs.key("scenes"),
+                None,
+                Some("scenes"),
+                format!("two scenes are named `{}`", s.name),
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// The stage instances of every scene: each stage under `stages:` once per scene, named
+/// `STAGE@SCENE`, its inputs renamed to the same scene and the scene's settings applied.
+fn expand_scenes(
+    cx: &Ctx,
+    templates: &serde_yaml::Mapping,
+    scenes: &[SceneDecl],
+    overrides: &[Override],
+) -> Result<Vec<StageDecl>, ConfigError> {
+    let mut out = Vec::new();
+    for sc in scenes {
+        for (k, v) in templates {
+            let tname = k.as_str().expect("checked");
+            let name = format!("{tname}@{}", sc.name);
+            let sets: Vec<&SceneSet> = sc.sets.iter().filter(|s| s.stage == tname).collect();
+            let mine: Vec<&Override> = overrides
+                .iter()
+                .filter(|o| o.stage == tname || o.stage == name)
+                .collect();
+            let mut d = stage_decl(cx, &name, &format!("stages.{tname}"), v, &sets, &mine)?;
+            d.template = tname.to_string();
+            d.scene = Some(sc.name.clone());
+            for up in d.inputs.values_mut() {
+                *up = format!("{up}@{}", sc.name);
+            }
+            out.push(d);
+        }
+    }
+    Ok(out)
+}
+
+/// `executor:` of the file: `slurm:` resources.
+fn executor_config(cx: &Ctx, v: &Yaml) -> Result<SlurmConfig, ConfigError> {
+    let m = match v {
+        Yaml::Mapping(m) => m,
+        Yaml::Null => return Ok(SlurmConfig::default()),
+        other => {
+            return Err(cx.err(
+                cx.locs.value("executor"),
+                None,
+                Some("executor"),
+                format!(
+                    "expected a mapping with `slurm:`, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    };
+    let mut slurm = SlurmConfig::default();
+    for (k, x) in m {
+        match k.as_str().unwrap_or("?") {
+            "slurm" => {
+                slurm = serde_yaml::from_value(x.clone()).map_err(|e| {
+                    let msg = e.to_string();
+                    let field = msg
+                        .strip_prefix("unknown field `")
+                        .and_then(|r| r.split('`').next())
+                        .map(String::from);
+                    let loc = match &field {
+                        Some(f) => cx.locs.key(&format!("executor.slurm.{f}")),
+                        None => cx.locs.value("executor.slurm"),
+                    };
+                    cx.err(loc, None, Some("executor.slurm"), msg)
+                })?
+            }
+            other => {
+                return Err(cx.err(
+                    cx.locs.key(&format!("executor.{other}")),
+                    None,
+                    Some(other),
+                    "unknown key (expected: slurm)",
+                ))
+            }
+        }
+    }
+    Ok(slurm)
 }
 
 fn valid_name(n: &str) -> bool {
@@ -487,13 +1055,17 @@ fn valid_name(n: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
 }
 
+/// Validates stage `name` written at key path `base` (`stages.train`), applying a scene's
+/// settings and then the command line's overrides to its params.
 fn stage_decl(
     cx: &Ctx,
     name: &str,
+    base: &str,
     v: &Yaml,
+    sets: &[&SceneSet],
     overrides: &[&Override],
 ) -> Result<StageDecl, ConfigError> {
-    let base = format!("stages.{name}");
+    let base = base.to_string();
     let loc = cx.locs.key(&base);
     let m = match v {
         Yaml::Mapping(m) => m,
@@ -644,6 +1216,22 @@ fn stage_decl(
             ))
         }
     }
+    for set in sets {
+        let key = &set.path[0];
+        let value = if set.path.len() == 1 {
+            set.value.clone()
+        } else {
+            let mut v = given
+                .iter()
+                .find(|(k, ..)| k == key)
+                .map_or(Yaml::Null, |(_, v, _)| v.clone());
+            let rest: Vec<&str> = set.path[1..].iter().map(String::as_str).collect();
+            crate::bench::plan::set_path(&mut v, &rest, &set.value);
+            v
+        };
+        given.retain(|(k, ..)| k != key);
+        given.push((key.clone(), value, set.loc.clone()));
+    }
     for o in overrides {
         given.retain(|(k, ..)| k != &o.param);
         given.push((
@@ -711,6 +1299,9 @@ fn stage_decl(
     })?;
 
     Ok(StageDecl {
+        scene: None,
+        template: name.to_string(),
+        gather: BTreeMap::new(),
         name: name.to_string(),
         kind,
         params,
@@ -719,12 +1310,18 @@ fn stage_decl(
     })
 }
 
-/// Inputs name existing stages whose kind writes the tables the slot reads.
-fn check_inputs(cx: &Ctx, stages: &[StageDecl]) -> Result<(), ConfigError> {
+/// Inputs name existing stages (of `stages` itself or of `more`) whose kind writes the tables
+/// the slot reads; `section` is where `stages` are written (`stages`, `dataset`).
+fn check_inputs(
+    cx: &Ctx,
+    stages: &[StageDecl],
+    more: &[StageDecl],
+    section: &str,
+) -> Result<(), ConfigError> {
     for s in stages {
         for (slot, up) in &s.inputs {
-            let kpath = format!("stages.{}.inputs.{slot}", s.name);
-            let Some(u) = stages.iter().find(|x| &x.name == up) else {
+            let kpath = format!("{section}.{}.inputs.{slot}", s.name);
+            let Some(u) = stages.iter().chain(more).find(|x| &x.name == up) else {
                 return Err(cx.err(
                     cx.locs.value(&kpath),
                     Some(&s.name),

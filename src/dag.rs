@@ -20,7 +20,7 @@ impl Dag {
         let mut graph = DiGraph::new();
         let nodes: Vec<NodeIndex> = (0..p.stages.len()).map(|i| graph.add_node(i)).collect();
         for (i, s) in p.stages.iter().enumerate() {
-            for up in s.inputs.values() {
+            for up in s.upstream_names() {
                 let u = p.index_of(up).expect("inputs validated");
                 graph.add_edge(nodes[u], nodes[i], ());
             }
@@ -118,7 +118,11 @@ impl Dag {
         }
         for &i in &self.order {
             let st = &p.stages[i];
-            for (slot, up) in &st.inputs {
+            let gathered = st
+                .gather
+                .iter()
+                .flat_map(|(slot, ups)| ups.iter().map(move |(_, up)| (slot, up)));
+            for (slot, up) in st.inputs.iter().chain(gathered) {
                 s.push_str(&format!(
                     "  \"{up}\" -> \"{}\" [label=\"{slot}\"];\n",
                     st.name

@@ -88,6 +88,28 @@ fn key_of(
             },
         );
     }
+    for (slot, ups) in &s.gather {
+        // One digest over every scene's (name, output digest), in scene order.
+        let mut h = blake3::Hasher::new();
+        for (scene, up) in ups {
+            let d = digests.get(&p.index_of(up).expect("validated"))?;
+            h.update(scene.as_bytes());
+            h.update(&[0]);
+            h.update(d.as_bytes());
+            h.update(b"\n");
+        }
+        let template = ups
+            .first()
+            .and_then(|(_, up)| up.split('@').next())
+            .unwrap_or("?");
+        inputs.insert(
+            slot.clone(),
+            InputInfo {
+                stage: format!("{template}@* ({} scenes)", ups.len()),
+                digest: h.finalize().to_hex().to_string(),
+            },
+        );
+    }
     let by_digest = inputs
         .iter()
         .map(|(k, v)| (k.clone(), v.digest.clone()))
@@ -185,9 +207,15 @@ pub fn resolve(p: &Pipeline, dag: &Dag, store: &Store, full_verify: bool) -> Res
     for &i in &dag.order {
         let r = match key_of(p, i, &digests, &external) {
             None => {
-                let stale_up: Vec<String> = p.stages[i]
+                let s = &p.stages[i];
+                let gathered = s
+                    .gather
+                    .iter()
+                    .flat_map(|(slot, ups)| ups.iter().map(move |(_, up)| (slot, up)));
+                let stale_up: Vec<String> = s
                     .inputs
                     .iter()
+                    .chain(gathered)
                     .filter(|(_, up)| !digests.contains_key(&p.index_of(up).unwrap()))
                     .map(|(slot, up)| {
                         if slot == up {
@@ -239,9 +267,23 @@ pub fn resolve(p: &Pipeline, dag: &Dag, store: &Store, full_verify: bool) -> Res
         .collect())
 }
 
+/// Which scenes of a scene pipeline a run covers.
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub enum Scenes {
+    /// Every stage: all scenes and the dataset stages (also a pipeline without scenes).
+    #[default]
+    All,
+    /// The stages of these scenes only (`--scene NAME`).
+    Named(Vec<String>),
+    /// The dataset stages only; every scene must be up to date already.
+    Dataset,
+}
+
 /// What to run.
 #[derive(Debug, Default, Clone)]
 pub struct RunOptions {
+    /// Which scenes (of a pipeline with `scenes:`).
+    pub scenes: Scenes,
     /// Run this stage and everything it depends on.
     pub until: Option<String>,
     /// Run only this stage (its inputs must be up to date).
@@ -294,24 +336,92 @@ pub struct RunReport {
 }
 
 /// Which stages a run touches: the ones it brings up to date, and what they need.
-fn selection(p: &Pipeline, dag: &Dag, opts: &RunOptions) -> Result<BTreeSet<usize>> {
+pub fn selection(p: &Pipeline, dag: &Dag, opts: &RunOptions) -> Result<BTreeSet<usize>> {
+    let scenes: Vec<String> = match &opts.scenes {
+        Scenes::Named(list) => {
+            if p.scenes.is_empty() {
+                bail!(
+                    "--scene {}: {} declares no scenes",
+                    list.join(","),
+                    p.file.display()
+                );
+            }
+            for sc in list {
+                if !p.scenes.contains(sc) {
+                    bail!(
+                        "--scene {sc}: no scene named `{sc}` in {} (scenes: {})",
+                        p.file.display(),
+                        p.scenes.join(", ")
+                    );
+                }
+            }
+            list.clone()
+        }
+        _ => p.scenes.clone(),
+    };
     let find = |name: &str, flag: &str| {
-        p.index_of(name).ok_or_else(|| {
-            anyhow!(
+        let found = p.instances(name, &scenes);
+        if found.is_empty() {
+            bail!(
                 "{flag} {name}: no stage named `{name}` in {}",
                 p.file.display()
-            )
-        })
+            );
+        }
+        Ok(found)
     };
     for f in &opts.force {
         find(f, "--force")?;
     }
+    let base: BTreeSet<usize> = match &opts.scenes {
+        Scenes::All => (0..p.stages.len()).collect(),
+        Scenes::Named(list) => list.iter().flat_map(|sc| p.scene_stages(sc)).collect(),
+        Scenes::Dataset => p.dataset_stages().into_iter().collect(),
+    };
     Ok(match (&opts.until, &opts.only) {
         (Some(_), Some(_)) => bail!("--until and --only cannot be combined"),
-        (Some(u), None) => dag.ancestors_and_self(find(u, "--until")?),
-        (None, Some(o)) => BTreeSet::from([find(o, "--only")?]),
-        (None, None) => (0..p.stages.len()).collect(),
+        (Some(u), None) => find(u, "--until")?
+            .into_iter()
+            .flat_map(|i| dag.ancestors_and_self(i))
+            .collect(),
+        (None, Some(o)) => find(o, "--only")?.into_iter().collect(),
+        (None, None) => base,
     })
+}
+
+/// The tables a gathered input slot hands to a dataset stage: for each table the slot reads,
+/// every scene's rows with a leading `scene` column, in scene order.
+pub fn gather_tables(tables: &[&str], parts: &[(String, Arc<Tables>)]) -> Result<Tables> {
+    use arrow::{
+        array::{ArrayRef, StringArray},
+        datatypes::{DataType, Field, Schema},
+        record_batch::RecordBatch,
+    };
+    let mut out = Tables::new();
+    for &t in tables {
+        let mut batches = Vec::new();
+        let mut schema = None;
+        for (scene, part) in parts {
+            let b = part
+                .get(t)
+                .ok_or_else(|| anyhow!("scene `{scene}` has no table `{t}`"))?;
+            let mut fields = vec![Arc::new(Field::new("scene", DataType::Utf8, false))];
+            fields.extend(b.schema().fields().iter().cloned());
+            let sch = Arc::new(Schema::new(fields));
+            let mut cols: Vec<ArrayRef> = vec![Arc::new(StringArray::from(vec![
+                scene.as_str();
+                b.num_rows()
+            ]))];
+            cols.extend(b.columns().iter().cloned());
+            batches.push(RecordBatch::try_new(sch.clone(), cols)?);
+            schema = Some(sch);
+        }
+        let schema = schema.ok_or_else(|| anyhow!("no scenes to gather table `{t}` from"))?;
+        out.insert(
+            t.to_string(),
+            arrow::compute::concat_batches(&schema, &batches)?,
+        );
+    }
+    Ok(out)
 }
 
 struct ProgressAdapter(ProgressBar);
@@ -349,6 +459,9 @@ fn peak_rss_bytes() -> u64 {
         })
         .map_or(0, |kb| kb * 1024)
 }
+
+/// The manifests of a gathered slot's stage in every scene: (scene, manifest).
+type SceneManifests = Vec<(String, Box<Manifest>)>;
 
 /// Tables already read from the cache during this run, by key.
 type Loaded = Arc<Mutex<HashMap<String, Arc<Tables>>>>;
@@ -402,6 +515,8 @@ fn execute(
 struct Finished {
     i: usize,
     result: Result<(Manifest, f64)>,
+    /// Another run published the entry while this one waited for its lock.
+    reused: bool,
     wall: f64,
     cpu: f64,
     rss: u64,
@@ -417,7 +532,11 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
     let _lock = if opts.dry_run {
         None
     } else {
-        Some(crate::store::RunLock::acquire(store.root(), opts.no_wait)?)
+        Some(crate::store::RunLock::acquire(
+            store.root(),
+            opts.no_wait,
+            false,
+        )?)
     };
     if !opts.dry_run {
         store.clean_tmp();
@@ -539,12 +658,16 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                     Entry::Missing => explain(&p, i, &store, &key, &inputs),
                 };
                 if !is_selected {
-                    bail!(
-                        "cannot run only the selected stages: `{}` needs stage `{}`, which is not up to date ({reason}); run `pipe run --until {}` first",
-                        opts.only.as_deref().unwrap_or("?"),
-                        s.name,
-                        opts.only.as_deref().unwrap_or(&s.name)
-                    );
+                    match &opts.only {
+                        Some(only) => bail!(
+                            "cannot run only the selected stages: `{only}` needs stage `{}`, which is not up to date ({reason}); run `pipe run --until {only}` first",
+                            s.name,
+                        ),
+                        None => bail!(
+                            "cannot run only the selected stages: the dataset stages need stage `{}`, which is not up to date ({reason}); run its scene first",
+                            s.name,
+                        ),
+                    }
                 }
                 if opts.dry_run {
                     reports.insert(i, report(i, Outcome::WouldRun, reason, Some(key)));
@@ -557,11 +680,11 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                 }
                 counter += 1;
                 reason = reason.replace('\n', " ");
-                log(format!(
+                let running_line = format!(
                     "[{counter}/{total}] running `{}` ({}): {reason}",
                     s.name,
                     s.kind.kind()
-                ));
+                );
                 let bar = multi.add(ProgressBar::new(1));
                 bar.set_style(
                     ProgressStyle::with_template(
@@ -570,19 +693,89 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                     .unwrap_or_else(|_| ProgressStyle::default_bar()),
                 );
                 bar.set_prefix(s.name.clone());
+                let manifest_of = |up: &String| manifests[&p.index_of(up).unwrap()].clone();
                 let upstream: Vec<(String, Box<Manifest>)> = s
                     .inputs
                     .iter()
-                    .map(|(slot, up)| (slot.clone(), manifests[&p.index_of(up).unwrap()].clone()))
+                    .map(|(slot, up)| (slot.clone(), manifest_of(up)))
+                    .collect();
+                let gathered: Vec<(String, SceneManifests)> = s
+                    .gather
+                    .iter()
+                    .map(|(slot, ups)| {
+                        let ms = ups
+                            .iter()
+                            .map(|(scene, up)| (scene.clone(), manifest_of(up)))
+                            .collect();
+                        (slot.clone(), ms)
+                    })
                     .collect();
                 let pre_overhead = ov0.elapsed().as_secs_f64();
                 let (p2, store2, loaded2) = (p.clone(), store.clone(), loaded.clone());
                 let key2 = key.clone();
+                let (no_wait, forced) = (opts.no_wait, force.contains(&i));
+                let multi2 = multi.clone();
                 reports.insert(i, report(i, Outcome::Ran, reason, Some(key)));
                 in_flight.insert(i);
                 running.spawn_blocking(move || {
+                    let log2 = |msg: String| multi2.suspend(|| eprintln!("{msg}"));
+                    let failed = |e: anyhow::Error| Finished {
+                        i,
+                        result: Err(e),
+                        reused: false,
+                        wall: 0.0,
+                        cpu: 0.0,
+                        rss: 0,
+                    };
+                    // The entry's lock: one writer per entry across every run on this cache.
+                    let name = &p2.stages[i].name;
+                    let _lock = match store2.lock_key(&key2, no_wait, |holder| {
+                        log2(format!(
+                            "stage `{name}`: waiting for {holder}, which computes the same entry"
+                        ))
+                    }) {
+                        Ok(l) => l,
+                        Err(e) => {
+                            bar.finish_and_clear();
+                            return failed(e.context(format!("stage `{name}`")));
+                        }
+                    };
+                    if !forced {
+                        if let Entry::Valid(m) = store2.check(&key2, false) {
+                            bar.finish_and_clear();
+                            return Finished {
+                                i,
+                                result: Ok((*m, pre_overhead)),
+                                reused: true,
+                                wall: 0.0,
+                                cpu: 0.0,
+                                rss: 0,
+                            };
+                        }
+                    }
+                    log2(running_line);
                     let ov1 = Instant::now();
                     let mut ins = BTreeMap::new();
+                    for (slot, parts) in &gathered {
+                        let spec = p2.stages[i].kind.inputs().iter().find(|x| x.name == slot);
+                        let tables = spec.map_or(&[][..], |x| x.tables);
+                        let loaded = parts
+                            .iter()
+                            .map(|(scene, m)| {
+                                load_cached(&store2, &loaded2, m).map(|t| (scene.clone(), t))
+                            })
+                            .collect::<Result<Vec<_>>>()
+                            .and_then(|parts| gather_tables(tables, &parts));
+                        match loaded {
+                            Ok(t) => {
+                                ins.insert(slot.clone(), Arc::new(t));
+                            }
+                            Err(e) => {
+                                bar.finish_and_clear();
+                                return failed(e);
+                            }
+                        }
+                    }
                     for (slot, m) in &upstream {
                         match load_cached(&store2, &loaded2, m) {
                             Ok(t) => {
@@ -592,6 +785,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                                 return Finished {
                                     i,
                                     result: Err(e),
+                                    reused: false,
                                     wall: 0.0,
                                     cpu: 0.0,
                                     rss: 0,
@@ -642,6 +836,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
                     Finished {
                         i,
                         result: published.map(|m| (m, overhead)),
+                        reused: false,
                         wall,
                         cpu,
                         rss,
@@ -656,6 +851,7 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
         let Finished {
             i,
             result,
+            reused,
             wall,
             cpu,
             rss,
@@ -670,6 +866,10 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport> {
         match result {
             Ok((mut m, overhead)) => {
                 r.overhead_s += overhead;
+                if reused {
+                    r.outcome = Outcome::Cached;
+                    r.reason = "computed meanwhile by another run".into();
+                }
                 let key = r.key.clone().unwrap_or_default();
                 let (_, inputs) = key_of(&p, i, &digests, &external).expect("inputs done");
                 m.inputs = inputs.clone();

@@ -9,11 +9,18 @@
 //!   runs/<stage>.json               the last successful run of each stage instance (for status)
 //!   state/verified.json             (size, mtime, inode) of files already hashed, so a no-op
 //!                                   run does not re-hash gigabytes
-//!   lock                            held (flock) by the running `pipe run`
+//!   locks/<key>.lock                who computes entry <key> right now (pid, host); see KeyLock
+//!   lock                            flock: shared by every `pipe run`, exclusive for `pipe gc`
 //! ```
 //! An entry is published by writing it completely under `tmp/`, fsyncing it and renaming the
 //! directory into `objects/`, so a crash leaves no partial entry. Reading verifies sizes and
 //! hashes; a corrupt entry is moved to `trash/` and recomputed.
+//!
+//! Many `pipe run` processes, on many machines sharing the cache over NFS, may work on one
+//! cache at once: before computing an entry a run takes the entry's lock file (created by the
+//! hard-link trick, atomic on NFS), then looks again whether another run published the entry
+//! meanwhile. The first writer wins; a duplicate is discarded. A lock whose holder died (same
+//! host and the pid is gone, or no heartbeat for [`STALE_LOCK_S`]) is broken by the next run.
 
 use std::{
     collections::{BTreeMap, BTreeSet},
@@ -107,6 +114,57 @@ pub fn unix_now() -> f64 {
         .unwrap_or(0.0)
 }
 
+/// This machine's host name (lock files and temporary names say who wrote them).
+pub fn host_name() -> String {
+    let h = fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let h = h.trim();
+    if h.is_empty() {
+        "localhost".into()
+    } else {
+        h.to_string()
+    }
+}
+
+/// Whether process `pid` exists on this machine.
+fn pid_alive(pid: u32) -> bool {
+    if pid == 0 || pid > i32::MAX as u32 {
+        return false;
+    }
+    // SAFETY: kill with signal 0 only checks for existence.
+    let r = unsafe { libc::kill(pid as i32, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+}
+
+/// `NAME~PID~HOST~NANOS`: a temporary name that says who made it.
+fn owned_name(name: &str) -> String {
+    format!(
+        "{name}~{}~{}~{}",
+        std::process::id(),
+        host_name(),
+        SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0)
+    )
+}
+
+/// Whether the temporary file or directory `path` (named by [`owned_name`]) is a leftover: its
+/// process is gone (same host), or it has not changed for [`STALE_LOCK_S`].
+fn is_leftover(path: &Path) -> bool {
+    let name = path.file_name().unwrap_or_default().to_string_lossy();
+    let parts: Vec<&str> = name.split('~').collect();
+    if let [_, pid, host, _] = parts[..] {
+        if host == host_name() {
+            return !pid.parse().is_ok_and(pid_alive);
+        }
+    }
+    fs::symlink_metadata(path)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .is_some_and(|age| age.as_secs_f64() > STALE_LOCK_S)
+}
+
 fn hash_bytes(bytes: &[u8]) -> String {
     let mut h = blake3::Hasher::new();
     if bytes.len() > 1 << 20 {
@@ -121,7 +179,7 @@ fn hash_bytes(bytes: &[u8]) -> String {
 /// old content or the new, never a part; on failure (disk full) no temporary file is left.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let name = path.file_name().unwrap_or_default().to_string_lossy();
-    let tmp = path.with_file_name(format!(".{name}.{}", std::process::id()));
+    let tmp = path.with_file_name(format!(".{}", owned_name(&name)));
     let written = fs::write(&tmp, bytes)
         .with_context(|| format!("writing {} (disk full?)", tmp.display()))
         .and_then(|()| {
@@ -144,7 +202,7 @@ type Memo = BTreeMap<String, (u64, i64, u64)>;
 impl Store {
     /// Opens (creating if needed) the cache at `root`.
     pub fn open(root: &Path) -> Result<Store> {
-        for d in ["objects", "tmp", "trash", "runs", "state"] {
+        for d in ["objects", "tmp", "trash", "runs", "state", "locks"] {
             let p = root.join(d);
             fs::create_dir_all(&p).with_context(|| {
                 format!(
@@ -375,14 +433,7 @@ impl Store {
     /// published the same key meanwhile, its (verified) entry wins and ours is discarded.
     pub fn publish(&self, mut manifest: Manifest, tables: &Tables) -> Result<Manifest> {
         let key = manifest.key.clone();
-        let tmp = self.root.join("tmp").join(format!(
-            "{key}.{}.{}",
-            std::process::id(),
-            SystemTime::now()
-                .duration_since(SystemTime::UNIX_EPOCH)
-                .map(|d| d.as_nanos())
-                .unwrap_or(0)
-        ));
+        let tmp = self.root.join("tmp").join(owned_name(&key));
         let result = (|| -> Result<Manifest> {
             fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
             manifest.files.clear();
@@ -444,17 +495,157 @@ impl Store {
         result
     }
 
-    /// Removes leftovers of interrupted runs. Only call while holding the run lock.
+    /// Removes leftovers of interrupted runs: temporary entries and lock files of processes
+    /// that are gone (on this host) or silent for [`STALE_LOCK_S`]. Other runs' live work is
+    /// left alone, so this is safe while they run.
     pub fn clean_tmp(&self) -> usize {
         let mut n = 0;
         if let Ok(rd) = fs::read_dir(self.root.join("tmp")) {
             for e in rd.filter_map(|e| e.ok()) {
-                if fs::remove_dir_all(e.path()).is_ok() {
+                if is_leftover(&e.path()) && fs::remove_dir_all(e.path()).is_ok() {
                     n += 1;
                 }
             }
         }
+        if let Ok(rd) = fs::read_dir(self.root.join("locks")) {
+            for e in rd.filter_map(|e| e.ok()) {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with('.') && is_leftover(&e.path()) {
+                    let _ = fs::remove_file(e.path());
+                } else if let Some(key) = name.strip_suffix(".lock") {
+                    if let Ok(Some(_)) = self.stale_lock(key) {
+                        n += 1;
+                    }
+                }
+            }
+        }
         n
+    }
+
+    fn lock_path(&self, key: &str) -> PathBuf {
+        self.root.join("locks").join(format!("{key}.lock"))
+    }
+
+    /// If the lock of `key` is stale, breaks it and returns who held it; `Ok(None)` when it is
+    /// held by a live process or free.
+    fn stale_lock(&self, key: &str) -> Result<Option<String>> {
+        let path = self.lock_path(key);
+        let Some(holder) = LockHolder::read(&path) else {
+            return Ok(None);
+        };
+        if !holder.is_stale() {
+            return Ok(None);
+        }
+        // Rename it away (only one breaker succeeds), then make sure we broke that lock and
+        // not a fresh one taken meanwhile; a fresh one is put back.
+        let aside = path.with_file_name(format!(".{}", owned_name(&format!("{key}.broken"))));
+        if fs::rename(&path, &aside).is_err() {
+            return Ok(None);
+        }
+        let moved_ino = fs::metadata(&aside).map(|m| m.ino()).unwrap_or(0);
+        if moved_ino != holder.ino {
+            let _ = fs::hard_link(&aside, &path);
+            let _ = fs::remove_file(&aside);
+            return Ok(None);
+        }
+        let _ = fs::remove_file(&aside);
+        Ok(Some(holder.describe()))
+    }
+
+    /// Tries once to take the lock of entry `key`: the lock, or who holds it. A stale lock is
+    /// broken and taken.
+    pub fn try_lock_key(&self, key: &str) -> Result<Result<KeyLock, String>> {
+        let dir = self.root.join("locks");
+        fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let path = self.lock_path(key);
+        let nonce = owned_name("lock");
+        let uniq = dir.join(format!(".{key}.{nonce}"));
+        let content = format!("{} {} {nonce}\n", std::process::id(), host_name());
+        let written = File::create(&uniq)
+            .and_then(|mut f| f.write_all(content.as_bytes()).and_then(|()| f.sync_all()))
+            .with_context(|| format!("writing lock file {} (disk full?)", uniq.display()));
+        if let Err(e) = written {
+            let _ = fs::remove_file(&uniq);
+            return Err(e);
+        }
+        let result = (|| {
+            for _ in 0..5 {
+                // The hard-link trick: link(2) is atomic on NFS, and a lost reply is caught
+                // by the link count of our own file.
+                let linked = match fs::hard_link(&uniq, &path) {
+                    Ok(()) => true,
+                    Err(_) if fs::metadata(&uniq).is_ok_and(|m| m.nlink() == 2) => true,
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+                    Err(_) => {
+                        // File systems without hard links: exclusive create.
+                        match fs::OpenOptions::new()
+                            .write(true)
+                            .create_new(true)
+                            .open(&path)
+                        {
+                            Ok(mut f) => {
+                                f.write_all(content.as_bytes())
+                                    .and_then(|()| f.sync_all())
+                                    .with_context(|| {
+                                        format!("writing lock file {} (disk full?)", path.display())
+                                    })?;
+                                true
+                            }
+                            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+                            Err(e) => {
+                                return Err(anyhow!(e)).with_context(|| {
+                                    format!("creating lock file {}", path.display())
+                                })
+                            }
+                        }
+                    }
+                };
+                if linked {
+                    return Ok(Ok(KeyLock::start(path.clone(), nonce.clone())));
+                }
+                if self.stale_lock(key)?.is_some() {
+                    continue;
+                }
+                match LockHolder::read(&path) {
+                    Some(h) => return Ok(Err(h.describe())),
+                    None => continue, // released meanwhile
+                }
+            }
+            Ok(Err(
+                "another process (the lock keeps changing hands)".to_string()
+            ))
+        })();
+        let _ = fs::remove_file(&uniq);
+        result
+    }
+
+    /// Takes the lock of entry `key`, waiting while a live process holds it (`waiting` is
+    /// called once with the holder); with `no_wait`, a held lock is an error naming the holder.
+    pub fn lock_key(
+        &self,
+        key: &str,
+        no_wait: bool,
+        mut waiting: impl FnMut(&str),
+    ) -> Result<KeyLock> {
+        let mut said = false;
+        let mut pause = std::time::Duration::from_millis(50);
+        loop {
+            match self.try_lock_key(key)? {
+                Ok(lock) => return Ok(lock),
+                Err(holder) if no_wait => bail!(
+                    "the cache {} is locked by {holder} (another `pipe run` computes entry {key}); retry later or drop --no-wait",
+                    self.root.display()
+                ),
+                Err(holder) => {
+                    if !said {
+                        waiting(&holder);
+                        said = true;
+                    }
+                    std::thread::sleep(pause);
+                    pause = (pause * 2).min(std::time::Duration::from_secs(2));
+                }
+            }
+        }
     }
 
     pub fn run_record(&self, stage: &str) -> Option<RunRecord> {
@@ -516,10 +707,7 @@ impl Store {
             bytes += dir_size(&dir);
             if !dry_run {
                 // Rename first so a concurrent reader never sees a half-deleted entry.
-                let doomed = self
-                    .root
-                    .join("tmp")
-                    .join(format!("gc.{key}.{}", std::process::id()));
+                let doomed = self.root.join("tmp").join(owned_name(&format!("gc.{key}")));
                 fs::rename(&dir, &doomed).with_context(|| format!("removing {}", dir.display()))?;
                 fs::remove_dir_all(&doomed)
                     .with_context(|| format!("removing {}", doomed.display()))?;
@@ -582,16 +770,109 @@ pub fn read_parquet(bytes: Vec<u8>) -> Result<RecordBatch> {
     Ok(concat_batches(&schema, &batches)?)
 }
 
-/// An exclusive lock on the cache, held for the duration of a `pipe run`. Uses flock(2), so a
-/// lock whose holder died (even by SIGKILL) is released by the kernel and taken over.
+/// Seconds without a heartbeat after which a lock (or a temporary file) of a process on another
+/// host counts as abandoned. On the same host a lock is stale as soon as its process is gone.
+pub const STALE_LOCK_S: f64 = 300.0;
+
+/// How often a held [`KeyLock`] refreshes its file's mtime.
+const HEARTBEAT_S: u64 = 20;
+
+/// The content of a lock file: `PID HOST NONCE`, and its inode and age.
+struct LockHolder {
+    pid: u32,
+    host: String,
+    ino: u64,
+    age_s: f64,
+}
+
+impl LockHolder {
+    fn read(path: &Path) -> Option<LockHolder> {
+        let meta = fs::metadata(path).ok()?;
+        let text = fs::read_to_string(path).ok()?;
+        let mut it = text.split_whitespace();
+        let pid = it.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+        let host = it.next().unwrap_or("?").to_string();
+        let age_s = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .map_or(0.0, |d| d.as_secs_f64());
+        Some(LockHolder {
+            pid,
+            host,
+            ino: meta.ino(),
+            age_s,
+        })
+    }
+
+    fn is_stale(&self) -> bool {
+        (self.host == host_name() && !pid_alive(self.pid)) || self.age_s > STALE_LOCK_S
+    }
+
+    fn describe(&self) -> String {
+        format!("process {} on {}", self.pid, self.host)
+    }
+}
+
+/// The lock of one cache entry while this process computes it: `locks/<key>.lock`, refreshed
+/// by a heartbeat thread, removed on drop (if it is still ours).
+pub struct KeyLock {
+    path: PathBuf,
+    nonce: String,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    beat: Option<std::thread::JoinHandle<()>>,
+}
+
+impl KeyLock {
+    fn start(path: PathBuf, nonce: String) -> KeyLock {
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (p, s) = (path.clone(), stop.clone());
+        let beat = std::thread::spawn(move || {
+            let mut last = std::time::Instant::now();
+            while !s.load(std::sync::atomic::Ordering::Relaxed) {
+                std::thread::sleep(std::time::Duration::from_millis(100));
+                if last.elapsed().as_secs() >= HEARTBEAT_S {
+                    last = std::time::Instant::now();
+                    let _ = File::options()
+                        .write(true)
+                        .open(&p)
+                        .and_then(|f| f.set_modified(SystemTime::now()));
+                }
+            }
+        });
+        KeyLock {
+            path,
+            nonce,
+            stop,
+            beat: Some(beat),
+        }
+    }
+}
+
+impl Drop for KeyLock {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(b) = self.beat.take() {
+            let _ = b.join();
+        }
+        if fs::read_to_string(&self.path).is_ok_and(|t| t.contains(&self.nonce)) {
+            let _ = fs::remove_file(&self.path);
+        }
+    }
+}
+
+/// A lock on the whole cache (flock on `.pipe/lock`): shared by every `pipe run`, exclusive for
+/// `pipe gc`, which deletes entries. The kernel releases the lock of a process that died. Where
+/// the file system has no flock (some NFS set-ups), it is skipped: the per-entry locks still
+/// hold.
 pub struct RunLock {
     _file: File,
 }
 
 impl RunLock {
-    /// Takes the lock; if another run holds it, waits (printing who holds it) or, with
-    /// `no_wait`, fails with a message naming the holder.
-    pub fn acquire(root: &Path, no_wait: bool) -> Result<RunLock> {
+    /// Takes the lock (`exclusive` for gc); if it is taken the other way, waits (printing who
+    /// holds it) or, with `no_wait`, fails with a message naming the holder.
+    pub fn acquire(root: &Path, no_wait: bool, exclusive: bool) -> Result<RunLock> {
         use std::os::fd::AsRawFd;
         let path = root.join("lock");
         let mut file = fs::OpenOptions::new()
@@ -602,28 +883,40 @@ impl RunLock {
             .open(&path)
             .with_context(|| format!("opening lock file {}", path.display()))?;
         let fd = file.as_raw_fd();
+        let mode = if exclusive {
+            libc::LOCK_EX
+        } else {
+            libc::LOCK_SH
+        };
+        let unsupported = |e: &std::io::Error| {
+            matches!(
+                e.raw_os_error(),
+                Some(libc::ENOLCK) | Some(libc::EOPNOTSUPP) | Some(libc::ENOSYS)
+            )
+        };
         // SAFETY: flock on a file descriptor we own.
-        if unsafe { libc::flock(fd, libc::LOCK_EX | libc::LOCK_NB) } != 0 {
+        if unsafe { libc::flock(fd, mode | libc::LOCK_NB) } != 0 {
+            let err = std::io::Error::last_os_error();
+            if unsupported(&err) {
+                return Ok(RunLock { _file: file });
+            }
             let mut holder = String::new();
             let _ = file.read_to_string(&mut holder);
             let holder = holder.trim();
-            let who = if holder.is_empty() {
-                "another process".to_string()
+            let who = if exclusive || holder.is_empty() {
+                "another process (`pipe run` or `pipe gc`)".to_string()
             } else {
-                format!("process {holder}")
+                format!("process {holder} (`pipe gc`)")
             };
             if no_wait {
                 bail!(
-                    "the cache {} is locked by {who} (another `pipe run`); retry later or drop --no-wait",
+                    "the cache {} is locked by {who}; retry later or drop --no-wait",
                     root.display()
                 );
             }
-            eprintln!(
-                "waiting for {who} to finish its `pipe run` on {} ...",
-                root.display()
-            );
+            eprintln!("waiting for {who} on {} ...", root.display());
             // SAFETY: as above; blocks until the holder releases or dies.
-            if unsafe { libc::flock(fd, libc::LOCK_EX) } != 0 {
+            if unsafe { libc::flock(fd, mode) } != 0 {
                 bail!(
                     "locking {}: {}",
                     path.display(),
@@ -631,14 +924,15 @@ impl RunLock {
                 );
             }
         }
-        // Who holds the lock, for the message of a second run.
-        let host = fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
-        use std::io::Seek;
-        file.set_len(0)
-            .and_then(|()| file.seek(std::io::SeekFrom::Start(0)))
-            .and_then(|_| write!(file, "{} on {}", std::process::id(), host.trim()))
-            .and_then(|()| file.flush())
-            .with_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
+        if exclusive {
+            // Who holds the lock, for the message of a waiting run.
+            use std::io::Seek;
+            file.set_len(0)
+                .and_then(|()| file.seek(std::io::SeekFrom::Start(0)))
+                .and_then(|_| write!(file, "{} on {}", std::process::id(), host_name()))
+                .and_then(|()| file.flush())
+                .with_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
+        }
         Ok(RunLock { _file: file })
     }
 }

@@ -295,10 +295,11 @@ fn concurrent_runs_serialise_and_do_not_corrupt_the_cache() {
     }
     assert_eq!(ws.numbers("d"), vec![210, 214, 218]);
 
-    // --no-wait fails with a clear message while another run holds the lock.
-    // (`running` is printed after the lock is taken.)
-    let holder = ws.spawn_until(&["--force", "a", "--set", "a.sleep_ms=1500"], "running `a`");
-    let (code, _, err) = ws.run(&["--no-wait"]);
+    // --no-wait fails with a clear message while another run holds the lock of an entry it
+    // needs. (`running` is printed after the lock is taken.)
+    let busy = ["--force", "a", "--set", "a.sleep_ms=1500"];
+    let holder = ws.spawn_until(&busy, "running `a`");
+    let (code, _, err) = ws.run(&[&["--no-wait"][..], &busy].concat());
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("is locked by process"), "{err}");
     assert!(holder.wait_with_output().unwrap().status.success());

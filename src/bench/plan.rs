@@ -138,7 +138,7 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
 }
 
 /// Sets `path` inside a params mapping, creating mappings on the way.
-fn set_path(params: &mut Yaml, path: &[&str], value: &Yaml) {
+pub(crate) fn set_path(params: &mut Yaml, path: &[&str], value: &Yaml) {
     if !matches!(params, Yaml::Mapping(_)) {
         *params = Yaml::Mapping(Mapping::new());
     }

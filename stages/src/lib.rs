@@ -5,6 +5,7 @@
 //! another stage's files; the runner alone knows about hashing, caching, ordering and timing.
 //! Every output table has its Arrow schema in `data_schema/<table>.json` ([`schema`]).
 
+pub mod aggregate;
 pub mod compose;
 pub mod evaluate;
 pub mod field;
@@ -229,6 +230,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(render::Render),
         Box::new(evaluate::Evaluate),
         Box::new(report::Report),
+        Box::new(aggregate::Aggregate),
     ];
     all.extend(testing::kinds());
     all

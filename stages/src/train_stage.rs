@@ -211,8 +211,8 @@ impl TypedStage for Train {
                 .into_iter()
                 .map(|i| candidates[i])
                 .collect();
-            let jitter = SplitMix(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
-                .next_u64();
+            let jitter =
+                SplitMix(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
             let samples = sampling::sample_batch(&set, &ids, &p.sampling, Some(jitter));
             let losses = trainer.step(&to_ray_batch(&samples))?;
             let secs = start.elapsed().as_secs_f64();
