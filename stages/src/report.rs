@@ -208,11 +208,25 @@ fn training_svg(log: &RecordBatch) -> Result<Option<String>> {
             DataType::Float64 => f64_col(log, "train_log", name)?.values().to_vec(),
             _ => continue,
         };
-        let pts: Vec<(f64, f64)> = iters
+        let raw: Vec<(f64, f64)> = iters
             .iter()
             .zip(vals)
             .filter(|(_, v)| v.is_finite() && *v > 0.0)
             .map(|(&i, v)| (i, v))
+            .collect();
+        // Per-batch losses are noisy: plot a trailing running mean so the trend is readable.
+        let window = (raw.len() / 50).max(1);
+        let mut sum = 0.0;
+        let pts: Vec<(f64, f64)> = raw
+            .iter()
+            .enumerate()
+            .map(|(k, &(i, v))| {
+                sum += v;
+                if k >= window {
+                    sum -= raw[k - window].1;
+                }
+                (i, sum / (k + 1).min(window) as f64)
+            })
             .collect();
         if !pts.is_empty() {
             series.push((name.clone(), pts));
@@ -239,7 +253,10 @@ fn training_svg(log: &RecordBatch) -> Result<Option<String>> {
         let err = |e: String| StageError::Failed(format!("plotting training curves: {e}"));
         root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
         let mut chart = ChartBuilder::on(&root)
-            .caption("training losses (log scale)", ("sans-serif", 18))
+            .caption(
+                "training losses (log scale, running mean over 2% of the steps)",
+                ("sans-serif", 16),
+            )
             .margin(10)
             .x_label_area_size(35)
             .y_label_area_size(60)
@@ -323,7 +340,7 @@ impl<'a> Maps<'a> {
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
@@ -385,7 +402,7 @@ impl TypedStage for Report {
              body{{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}}\
              table{{border-collapse:collapse;margin:8px 0 20px}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}\
              th{{background:#f3f3f3}}td:first-child,th:first-child{{text-align:left}}tr.ours td{{font-weight:bold;background:#eef6ee}}\
-             .frames td{{border:none;padding:2px;text-align:center;vertical-align:top}}.frames img{{image-rendering:pixelated;display:block}}\
+             .frames{{width:100%;table-layout:fixed}}.frames td{{border:none;padding:2px;text-align:center;vertical-align:top}}.frames td:first-child{{width:56px}}.frames img{{image-rendering:pixelated;display:block;width:100%;height:auto}}\
              .cap{{font-size:12px;color:#555}}.legend span{{display:inline-block;margin:2px 8px 2px 0;font-size:12px}}\
              .legend i{{display:inline-block;width:12px;height:12px;margin-right:4px;vertical-align:middle;border:1px solid #999}}\
              </style></head><body><h1>{}</h1><p>Scene <code>{scene_name}</code>. Metrics on the evaluation frames \
