@@ -32,6 +32,7 @@ impl<'a> View<'a> {
 
 /// `c = beta * c + a b` with `a: [m, k]`, `b: [k, n]`, `c: [m, n]` row-major with row stride
 /// `ldc`.
+#[allow(clippy::too_many_arguments)]
 pub fn gemm(m: usize, k: usize, n: usize, a: View, b: View, beta: f32, c: &mut [f32], ldc: usize) {
     if m == 0 || n == 0 {
         return;
