@@ -83,3 +83,48 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
     ws.run_ok(&[]);
     assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
 }
+
+/// A novel view (a scene camera moved and turned) is rendered beside the scene's images, and
+/// its labels differ from the camera it came from but still show the street.
+#[test]
+fn novel_views_are_rendered_and_exported() {
+    let ws = Workspace::new(common::TINY_PIPELINE);
+    let view = "render.novel_views=[{frame: 20, camera: 0, translate: [1.0, 0, 2.0], yaw_deg: 8}]";
+    ws.run_ok(&["--until", "render", "--set", view]);
+    let (code, out, err) = ws.cmd("export", &["render", "--to", "render", "--set", view]);
+    assert_eq!(code, 0, "{out}{err}");
+    let dir = ws.dir().join("render/semantic");
+    let seq = fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .find(|n| n.ends_with("_0000000020.png"))
+        .expect("frame 20 of the scene")
+        .trim_end_matches("_0000000020.png")
+        .to_string();
+    let novel = gray8(&dir.join(format!("{seq}_0000000020_10.png")));
+    let original = gray8(&dir.join(format!("{seq}_0000000020.png")));
+    assert_eq!(novel.len(), original.len());
+    let differ = novel.iter().zip(&original).filter(|(a, b)| a != b).count();
+    assert!(
+        differ * 20 > novel.len(),
+        "the moved camera sees the same labels"
+    );
+    let road = novel.iter().filter(|&&l| l == 7).count();
+    let sky = novel.iter().filter(|&&l| l == 23).count();
+    assert!(
+        road * 20 > novel.len() && sky * 20 > novel.len(),
+        "road {road}, sky {sky}"
+    );
+    // A view of a frame the scene does not have is a parameter error naming it.
+    let (code, _, err) = ws.run(&[
+        "--until",
+        "render",
+        "--set",
+        "render.novel_views=[{frame: 999, camera: 0}]",
+    ]);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("novel_views[0]") && err.contains("frame 999"),
+        "{err}"
+    );
+}
