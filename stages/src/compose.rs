@@ -52,7 +52,8 @@ impl Scratch {
     }
 }
 
-fn softmax_into(logits: &[f32], out: &mut [f32]) {
+/// Softmax of `logits` into `out` (max-shifted).
+pub(crate) fn softmax_into(logits: &[f32], out: &mut [f32]) {
     let m = logits.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
     let mut z = 0.0;
     for (o, &l) in out.iter_mut().zip(logits) {

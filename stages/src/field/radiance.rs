@@ -164,6 +164,16 @@ impl FieldSpec {
     }
 }
 
+/// `d` (3 values) scaled to unit length; +z when it has no finite direction.
+pub fn unit_direction(d: &[f32]) -> [f32; 3] {
+    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    if n > 0.0 && n.is_finite() {
+        [d[0] / n, d[1] / n, d[2] / n]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
+}
+
 /// The heads a caller wants from [`RadianceField::forward`] (density is always computed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum FieldHead {
@@ -295,12 +305,7 @@ impl RadianceField {
             );
             let mut rows = Vec::with_capacity(points * 3);
             for dir in d.chunks_exact(3) {
-                let n = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-                let unit = if n > 0.0 && n.is_finite() {
-                    [dir[0] / n, dir[1] / n, dir[2] / n]
-                } else {
-                    [0.0, 0.0, 1.0]
-                };
+                let unit = unit_direction(dir);
                 for _ in 0..samples_per_direction {
                     rows.extend_from_slice(&unit);
                 }

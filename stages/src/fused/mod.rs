@@ -23,8 +23,11 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
+use crate::compose::softmax_into;
 use crate::field::encoding::{level_info, lookup_point, pe_dim, positional_encoding};
+use crate::field::radiance::unit_direction;
 use crate::field::{EncodingKind, FieldSpec, NamedWeight, RadianceField};
+use crate::train::batch::is_one_hot;
 use crate::train::{LossTerm, LossTerms, RayBatch, TrainConfig, TrainError, PROB_EPS};
 use mlp::{grow, Layer, View};
 
@@ -255,14 +258,6 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
-/// A fixed-field row is one-hot (a unique class): the first factor of u_i (as
-/// [`crate::train::RaySamples::unique_class_mask`]).
-fn is_unique(p: &[f32]) -> bool {
-    let max = p.iter().cloned().fold(0.0f32, f32::max);
-    let sum: f32 = p.iter().sum();
-    max > 0.999 && (sum - max).abs() < 1e-3
-}
-
 impl Work {
     /// Encoding, trunk, density and the requested heads for `positions` (`[n, 3]`) whose rays
     /// (`directions`, `[n / samples, 3]`) have `samples` points each.
@@ -334,14 +329,7 @@ impl Work {
             let dd = pe_dim(3, c.pe_direction_frequencies);
             let units: Vec<f32> = directions
                 .chunks_exact(3)
-                .flat_map(|d| {
-                    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                    if len > 0.0 && len.is_finite() {
-                        [d[0] / len, d[1] / len, d[2] / len]
-                    } else {
-                        [0.0, 0.0, 1.0]
-                    }
-                })
+                .flat_map(unit_direction)
                 .collect();
             self.dir_pe = positional_encoding(&units, 3, c.pe_direction_frequencies);
             let g = c.geo_features;
@@ -707,15 +695,10 @@ impl Work {
             grow(&mut self.probs, n * c);
             let logits = &self.sem[f.semantic.len() - 1];
             for i in 0..n {
-                let z = &logits[i * c..(i + 1) * c];
-                let max = z.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-                let p = &mut self.probs[i * c..(i + 1) * c];
-                let mut sum = 0.0;
-                for k in 0..c {
-                    p[k] = (z[k] - max).exp();
-                    sum += p[k];
-                }
-                p.iter_mut().for_each(|v| *v /= sum);
+                softmax_into(
+                    &logits[i * c..(i + 1) * c],
+                    &mut self.probs[i * c..(i + 1) * c],
+                );
             }
         }
         grow(&mut self.weight, n);
@@ -757,7 +740,7 @@ impl Work {
                 }
                 state.depth += w * s.t_mid[gi];
                 let mut mask = 0.0;
-                if weights[2] != 0.0 && self.sigma[li] > config.sigma_threshold && is_unique(fixed)
+                if weights[2] != 0.0 && self.sigma[li] > config.sigma_threshold && is_one_hot(fixed)
                 {
                     mask = 1.0;
                     let z = &self.sem[f.semantic.len() - 1][li * c..(li + 1) * c];

@@ -112,17 +112,16 @@ impl RaySamples {
     pub fn unique_class_mask(&self) -> Vec<f32> {
         self.fixed_semantics
             .chunks_exact(self.classes)
-            .map(|p| {
-                let max = p.iter().cloned().fold(0.0f32, f32::max);
-                let sum: f32 = p.iter().sum();
-                if max > 0.999 && (sum - max).abs() < 1e-3 {
-                    1.0
-                } else {
-                    0.0
-                }
-            })
+            .map(|p| if is_one_hot(p) { 1.0 } else { 0.0 })
             .collect()
     }
+}
+
+/// A fixed-field row is one-hot (a unique class): the first factor of the L_3D point mask u_i.
+pub fn is_one_hot(p: &[f32]) -> bool {
+    let max = p.iter().cloned().fold(0.0f32, f32::max);
+    let sum: f32 = p.iter().sum();
+    max > 0.999 && (sum - max).abs() < 1e-3
 }
 
 impl RayTargets {
