@@ -330,7 +330,7 @@ fn novel_set(base: &RaySet, prims: &[geometry::Primitive], views: &[NovelView]) 
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const INPUTS: &'static [InputSlot] = &[

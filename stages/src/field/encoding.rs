@@ -133,37 +133,59 @@ pub fn lookup_point(
     idx: &mut [i32],
     w: &mut [f32],
 ) {
+    for (l, &level) in levels.iter().enumerate() {
+        let corners = l * 8..(l + 1) * 8;
+        lookup_level(
+            config,
+            l,
+            level,
+            p,
+            &mut idx[corners.clone()],
+            &mut w[corners],
+        );
+    }
+}
+
+/// The 8 corner rows and weights of point `p` on level `l` (`level` from [`level_info`]).
+#[inline]
+pub fn lookup_level(
+    config: &GridConfig,
+    l: usize,
+    (n, dense): (u32, bool),
+    p: &[f32],
+    idx: &mut [i32],
+    w: &mut [f32],
+) {
     let table = config.table_size();
-    for (l, &(n, dense)) in levels.iter().enumerate() {
-        let mut cell = [0u32; 3];
-        let mut frac = [0f32; 3];
+    let mut cell = [0u32; 3];
+    let mut frac = [0f32; 3];
+    for a in 0..3 {
+        let x = p[a].clamp(0.0, 1.0) * n as f32;
+        // x >= 0 (or NaN, which casts to 0), so truncation is floor without a libm call
+        let c = (x as u32).min(n - 1);
+        cell[a] = c;
+        frac[a] = (x - c as f32).clamp(0.0, 1.0);
+    }
+    let offset = (l * table) as u32;
+    for corner in 0..8 {
+        let mut weight = 1.0f32;
+        let mut v = [0u32; 3];
         for a in 0..3 {
-            let x = p[a].clamp(0.0, 1.0) * n as f32;
-            let c = (x.floor() as u32).min(n - 1);
-            cell[a] = c;
-            frac[a] = (x - c as f32).clamp(0.0, 1.0);
+            let bit = (corner >> a) & 1;
+            v[a] = cell[a] + bit as u32;
+            weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
         }
-        let offset = (l * table) as u32;
-        for corner in 0..8 {
-            let mut weight = 1.0f32;
-            let mut v = [0u32; 3];
-            for a in 0..3 {
-                let bit = (corner >> a) & 1;
-                v[a] = cell[a] + bit as u32;
-                weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
-            }
-            let row = if dense {
-                let side = n + 1;
-                v[0] + side * (v[1] + side * v[2])
-            } else {
-                (v[0].wrapping_mul(HASH_PRIMES[0])
-                    ^ v[1].wrapping_mul(HASH_PRIMES[1])
-                    ^ v[2].wrapping_mul(HASH_PRIMES[2]))
-                    & (table as u32 - 1)
-            };
-            idx[l * 8 + corner] = (offset + row) as i32;
-            w[l * 8 + corner] = weight;
-        }
+        let row = if dense {
+            let side = n + 1;
+            v[0] + side * (v[1] + side * v[2])
+        } else {
+            (v[0].wrapping_mul(HASH_PRIMES[0])
+                ^ v[1].wrapping_mul(HASH_PRIMES[1])
+                ^ v[2].wrapping_mul(HASH_PRIMES[2]))
+                & (table as u32 - 1)
+        };
+        idx[corner] = (offset + row) as i32;
+        w[corner] = weight;
     }
 }
 

@@ -24,12 +24,12 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::compose::softmax_into;
-use crate::field::encoding::{level_info, lookup_point, pe_dim, positional_encoding};
+use crate::field::encoding::{level_info, lookup_level, positional_encoding};
 use crate::field::radiance::unit_direction;
 use crate::field::{EncodingKind, FieldSpec, NamedWeight, RadianceField};
 use crate::train::batch::is_one_hot;
 use crate::train::{LossTerm, LossTerms, RayBatch, TrainConfig, TrainError, PROB_EPS};
-use mlp::{grow, Layer, View};
+use mlp::{add_bias, add_column_sums, gemm, grow, relu_in_place, Layer, View};
 
 /// Ray partitions of a step: fixed, so results do not depend on the number of threads.
 pub const PARTITIONS: usize = 8;
@@ -217,14 +217,20 @@ struct Sums {
 /// Buffers of one partition, reused across steps (they only grow).
 #[derive(Default)]
 struct Work {
+    unit: Vec<f32>,
+    /// Corner rows and weights, level-major: `[levels, points, 8]`.
     idx: Vec<i32>,
     wts: Vec<f32>,
     enc: Vec<f32>,
     trunk: Vec<Vec<f32>>,
     sem: Vec<Vec<f32>>,
     col: Vec<Vec<f32>>,
-    col_in: Vec<f32>,
+    /// Per ray: the direction encoding `[rays, dd]` and its term in the colour head's first
+    /// layer (with the bias), `[rays, hidden]`.
     dir_pe: Vec<f32>,
+    dir_term: Vec<f32>,
+    dcol: Vec<f32>,
+    dray: Vec<f32>,
     sigma: Vec<f32>,
     dsigma: Vec<f32>,
     probs: Vec<f32>,
@@ -279,22 +285,46 @@ impl Work {
         self.idx.resize(n * corners, 0);
         grow(&mut self.wts, n * corners);
         grow(&mut self.enc, n * e);
+        grow(&mut self.unit, n * 3);
+        for (u, p) in self.unit.chunks_exact_mut(3).zip(positions.chunks_exact(3)) {
+            for a in 0..3 {
+                u[a] = spec.unit_coordinate(a, p[a]);
+            }
+        }
         let table = params[f.grid];
-        for (i, p) in positions.chunks_exact(3).enumerate() {
-            let u = [0, 1, 2].map(|a| spec.unit_coordinate(a, p[a]));
-            let (idx, w) = (
-                &mut self.idx[i * corners..(i + 1) * corners],
-                &mut self.wts[i * corners..(i + 1) * corners],
-            );
-            lookup_point(&c.grid, &f.levels, &u, idx, w);
-            let out = &mut self.enc[i * e..(i + 1) * e];
-            out.iter_mut().for_each(|v| *v = 0.0);
-            for l in 0..levels {
-                for k in 0..8 {
-                    let row = idx[l * 8 + k] as usize * feats;
-                    let wk = w[l * 8 + k];
-                    for ft in 0..feats {
-                        out[l * feats + ft] += wk * table[row + ft];
+        // Level by level: one level's table (512 KiB by default) stays in cache while every
+        // point reads it.
+        for (l, &level) in f.levels.iter().enumerate() {
+            let idx = &mut self.idx[l * n * 8..(l + 1) * n * 8];
+            let w = &mut self.wts[l * n * 8..(l + 1) * n * 8];
+            // Corners first, then the reads: a tight gather loop keeps many loads in flight.
+            for ((idx, w), u) in idx
+                .chunks_exact_mut(8)
+                .zip(w.chunks_exact_mut(8))
+                .zip(self.unit.chunks_exact(3))
+            {
+                lookup_level(&c.grid, l, level, u, idx, w);
+            }
+            let enc = self.enc[..n * e].chunks_exact_mut(e);
+            if feats == 2 {
+                for ((out, idx), w) in enc.zip(idx.chunks_exact(8)).zip(w.chunks_exact(8)) {
+                    let mut acc = [0f32; 2];
+                    for k in 0..8 {
+                        let row = idx[k] as usize * 2;
+                        acc[0] += w[k] * table[row];
+                        acc[1] += w[k] * table[row + 1];
+                    }
+                    out[l * 2..l * 2 + 2].copy_from_slice(&acc);
+                }
+            } else {
+                for ((out, idx), w) in enc.zip(idx.chunks_exact(8)).zip(w.chunks_exact(8)) {
+                    let out = &mut out[l * feats..(l + 1) * feats];
+                    out.iter_mut().for_each(|v| *v = 0.0);
+                    for k in 0..8 {
+                        let row = idx[k] as usize * feats;
+                        for ft in 0..feats {
+                            out[ft] += w[k] * table[row + ft];
+                        }
                     }
                 }
             }
@@ -326,29 +356,42 @@ impl Work {
             mlp::forward(&f.semantic, params, n, geo, &mut self.sem);
         }
         if heads.rgb {
-            let dd = pe_dim(3, c.pe_direction_frequencies);
+            // The first colour layer splits into a per-sample geometry part and a per-ray
+            // direction part: x W = geo W_geo + dir W_dir, and dir is constant along a ray.
+            let (g, h) = (c.geo_features, f.colour[0].outputs);
+            let rays = n / samples;
             let units: Vec<f32> = directions
                 .chunks_exact(3)
                 .flat_map(unit_direction)
                 .collect();
             self.dir_pe = positional_encoding(&units, 3, c.pe_direction_frequencies);
-            let g = c.geo_features;
-            let w_in = g + dd;
-            grow(&mut self.col_in, n * w_in);
-            for i in 0..n {
-                let row = &mut self.col_in[i * w_in..(i + 1) * w_in];
-                row[..g].copy_from_slice(&trunk_out[i * width + 1..(i + 1) * width]);
-                let r = i / samples;
-                row[g..].copy_from_slice(&self.dir_pe[r * dd..(r + 1) * dd]);
-            }
-            self.col.resize_with(f.colour.len(), Vec::new);
-            mlp::forward(
-                &f.colour,
-                params,
-                n,
-                View::rows(&self.col_in, w_in),
-                &mut self.col,
+            let dd = self.dir_pe.len() / rays.max(1);
+            let w0 = params[f.colour[0].weight];
+            grow(&mut self.dir_term, rays * h);
+            gemm(
+                rays,
+                dd,
+                h,
+                View::rows(&self.dir_pe, dd),
+                View::rows(&w0[g * h..], h),
+                0.0,
+                &mut self.dir_term,
+                h,
             );
+            add_bias(&mut self.dir_term[..rays * h], params[f.colour[0].bias]);
+            self.col.resize_with(f.colour.len(), Vec::new);
+            let (first, rest) = self.col.split_at_mut(1);
+            let h0 = &mut first[0];
+            grow(h0, n * h);
+            gemm(n, g, h, geo, View::rows(&w0[..g * h], h), 0.0, h0, h);
+            for (i, row) in h0[..n * h].chunks_exact_mut(h).enumerate() {
+                let d = &self.dir_term[(i / samples) * h..(i / samples + 1) * h];
+                row.iter_mut().zip(d).for_each(|(v, t)| *v += t);
+            }
+            if !rest.is_empty() {
+                relu_in_place(&mut h0[..n * h]);
+                mlp::forward(&f.colour[1..], params, n, View::rows(h0, h), rest);
+            }
             grow(&mut self.rgb, n * 3);
             let out = &self.col[f.colour.len() - 1];
             for i in 0..n * 3 {
@@ -356,6 +399,55 @@ impl Work {
             }
         }
     }
+}
+
+/// The grid table's gradient from every partition's encoding gradient (`denc`), one level per
+/// task: a level's rows are written by one task only, in partition and point order, so the sum
+/// is deterministic, and each task's slice of the table (512 KiB by default) stays in cache.
+fn scatter_grid(
+    f: &FusedField,
+    work: &[Work],
+    bounds: &[(usize, usize)],
+    samples: usize,
+    table: &mut [f32],
+) {
+    let grid = &f.spec.config.grid;
+    let feats = grid.features_per_level;
+    let e = grid.levels * feats;
+    let rows = grid.table_size();
+    table
+        .par_chunks_mut(rows * feats)
+        .enumerate()
+        .for_each(|(l, level)| {
+            level.iter_mut().for_each(|v| *v = 0.0);
+            let base = l * rows;
+            for (w, &(r0, r1)) in work.iter().zip(bounds) {
+                let n = (r1 - r0) * samples;
+                let idx = &w.idx[l * n * 8..(l + 1) * n * 8];
+                let wts = &w.wts[l * n * 8..(l + 1) * n * 8];
+                let denc = w.denc[..n * e].chunks_exact(e);
+                if feats == 2 {
+                    for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
+                        let d = [d[l * 2], d[l * 2 + 1]];
+                        for k in 0..8 {
+                            let row = (idx[k] as usize - base) * 2;
+                            level[row] += wts[k] * d[0];
+                            level[row + 1] += wts[k] * d[1];
+                        }
+                    }
+                } else {
+                    for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
+                        let d = &d[l * feats..(l + 1) * feats];
+                        for k in 0..8 {
+                            let row = (idx[k] as usize - base) * feats;
+                            for ft in 0..feats {
+                                level[row + ft] += wts[k] * d[ft];
+                            }
+                        }
+                    }
+                }
+            }
+        });
 }
 
 /// Loss weights and normalisers of one step (shared by all partitions).
@@ -521,12 +613,19 @@ impl FusedTrainer {
             .for_each(|(w, &(r0, r1))| {
                 w.backward_step(field, &params, batch, r0, r1, heads, config, sky, &scale);
             });
+        let mut table = std::mem::take(&mut self.work[0].grads[field.grid]);
+        table.resize(field.weights[field.grid].values.len(), 0.0);
+        scatter_grid(field, &self.work[..parts], &bounds, s.samples, &mut table);
+        self.work[0].grads[field.grid] = table;
         self.timings[0] = forward;
         self.timings[1] = start.elapsed().as_secs_f64() - forward;
-        // Sum the partitions' gradients into the first, in partition order.
+        // Sum the partitions' MLP gradients into the first, in partition order.
         let (first, rest) = self.work.split_at_mut(1);
         let rest = &rest[..parts - 1];
         for (k, g) in first[0].grads.iter_mut().enumerate() {
+            if k == field.grid {
+                continue;
+            }
             g.par_chunks_mut(1 << 14)
                 .enumerate()
                 .for_each(|(ci, chunk)| {
@@ -673,9 +772,12 @@ impl Work {
         let t = &batch.targets;
         let (ns, c) = (s.samples, s.classes);
         self.grads.resize_with(f.weights.len(), Vec::new);
-        for (g, w) in self.grads.iter_mut().zip(&f.weights) {
-            g.clear();
-            g.resize(w.values.len(), 0.0);
+        for (k, (g, w)) in self.grads.iter_mut().zip(&f.weights).enumerate() {
+            // The grid's gradient is not per partition: see `scatter_grid`.
+            if k != f.grid {
+                g.clear();
+                g.resize(w.values.len(), 0.0);
+            }
         }
         self.sums = Sums::default();
         if r1 == r0 {
@@ -916,20 +1018,84 @@ impl Work {
             );
         }
         if heads.rgb {
-            let w_in = g + pe_dim(3, spec_c.pe_direction_frequencies);
-            grow(&mut self.dy, n * 3);
-            self.dy[..n * 3].copy_from_slice(&self.drgb[..n * 3]);
-            mlp::backward(
-                &f.colour,
-                params,
-                &mut self.grads,
+            let l0 = f.colour[0];
+            let h = l0.outputs;
+            let rays = r1 - r0;
+            let dd = self.dir_pe.len() / rays;
+            // dcol: gradient of the first colour layer's pre-activation
+            grow(&mut self.dcol, n * h);
+            if f.colour.len() > 1 {
+                grow(&mut self.dy, n * 3);
+                self.dy[..n * 3].copy_from_slice(&self.drgb[..n * 3]);
+                mlp::backward(
+                    &f.colour[1..],
+                    params,
+                    &mut self.grads,
+                    n,
+                    View::rows(&self.col[0], h),
+                    None,
+                    &self.col[1..],
+                    &mut self.dy,
+                    &mut self.scratch,
+                    Some(&mut self.dcol),
+                );
+                self.dcol[..n * h]
+                    .iter_mut()
+                    .zip(&self.col[0][..n * h])
+                    .for_each(|(d, &a)| {
+                        if a <= 0.0 {
+                            *d = 0.0
+                        }
+                    });
+            } else {
+                self.dcol[..n * 3].copy_from_slice(&self.drgb[..n * 3]);
+            }
+            let dcol = &self.dcol[..n * h];
+            let geo = &self.trunk[trunk_out_idx][1..];
+            let (wg, wd) = self.grads[l0.weight].split_at_mut(g * h);
+            gemm(
+                g,
                 n,
-                View::rows(&self.col_in, w_in),
-                Some(g),
-                &self.col,
-                &mut self.dy,
-                &mut self.scratch,
-                Some(&mut self.dgeo_col),
+                h,
+                View {
+                    data: geo,
+                    rs: 1,
+                    cs: width,
+                },
+                View::rows(dcol, h),
+                1.0,
+                wg,
+                h,
+            );
+            // The direction part sees the sum of its ray's samples.
+            grow(&mut self.dray, rays * h);
+            for (r, sum) in self.dray[..rays * h].chunks_exact_mut(h).enumerate() {
+                sum.iter_mut().for_each(|v| *v = 0.0);
+                for row in dcol[r * ns * h..(r + 1) * ns * h].chunks_exact(h) {
+                    sum.iter_mut().zip(row).for_each(|(a, b)| *a += b);
+                }
+            }
+            gemm(
+                dd,
+                rays,
+                h,
+                View::transposed(&self.dir_pe, dd),
+                View::rows(&self.dray, h),
+                1.0,
+                wd,
+                h,
+            );
+            add_column_sums(&mut self.grads[l0.bias], &self.dray[..rays * h]);
+            grow(&mut self.dgeo_col, n * g);
+            gemm(
+                n,
+                h,
+                g,
+                View::rows(dcol, h),
+                View::transposed(&params[l0.weight][..g * h], h),
+                0.0,
+                &mut self.dgeo_col,
+                g,
             );
             self.dgeo[..n * g]
                 .iter_mut()
@@ -955,23 +1121,6 @@ impl Work {
             &mut self.scratch,
             Some(&mut self.denc),
         );
-        // Scatter into the grid table.
-        let feats = spec_c.grid.features_per_level;
-        let levels = spec_c.grid.levels;
-        let table = &mut self.grads[f.grid];
-        for i in 0..n {
-            for l in 0..levels {
-                let d = &self.denc[i * e + l * feats..i * e + (l + 1) * feats];
-                for k in 0..8 {
-                    let j = i * levels * 8 + l * 8 + k;
-                    let row = self.idx[j] as usize * feats;
-                    let wk = self.wts[j];
-                    for ft in 0..feats {
-                        table[row + ft] += wk * d[ft];
-                    }
-                }
-            }
-        }
     }
 }
 
@@ -986,6 +1135,11 @@ mod tests {
 
     /// A toy field whose grid holds large random values, so every path carries signal.
     fn toy_fields() -> (RadianceField, FusedField) {
+        toy_fields_with_heads(1)
+    }
+
+    /// [`toy_fields`] with `head_layers` hidden layers in the colour and semantic heads.
+    fn toy_fields_with_heads(head_layers: usize) -> (RadianceField, FusedField) {
         let mut spec = toy_spec();
         spec.config = FieldConfig {
             grid: GridConfig {
@@ -998,6 +1152,7 @@ mod tests {
             hidden: 16,
             geo_features: 7,
             trunk_layers: 2,
+            head_layers,
             ..Default::default()
         };
         let device = Backend::default().device();
@@ -1112,6 +1267,30 @@ mod tests {
                 );
             }
             assert_close(&what, &got.grads, &want);
+        }
+    }
+
+    /// The colour head's split first layer (per-sample geometry, per-ray direction) holds with
+    /// no hidden head layer (the first layer is the output) and with two.
+    #[test]
+    fn gradients_match_burn_for_other_head_depths() {
+        let batch = varied_batch();
+        let config = TrainConfig {
+            sigma_threshold: 0.3,
+            ..Default::default()
+        };
+        for head_layers in [0, 2] {
+            let (burn, fused) = toy_fields_with_heads(head_layers);
+            let (want_terms, want) = reference_gradients(&burn, &batch, &config);
+            let mut trainer = FusedTrainer::new(config.clone(), fused).unwrap();
+            let got = trainer.gradients(&batch).unwrap();
+            for ((t1, v1), (_, v2)) in got.terms.iter().zip(&want_terms) {
+                assert!(
+                    (v1 - v2).abs() <= 1e-4 * v2.abs().max(1.0),
+                    "head_layers {head_layers}: loss {t1} fused {v1} burn {v2}"
+                );
+            }
+            assert_close(&format!("head_layers {head_layers}"), &got.grads, &want);
         }
     }
 
