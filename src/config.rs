@@ -1233,12 +1233,22 @@ fn stage_decl(
         given.push((key.clone(), value, set.loc.clone()));
     }
     for o in overrides {
-        given.retain(|(k, ..)| k != &o.param);
-        given.push((
-            o.param.clone(),
-            o.value.clone(),
-            Loc::CommandLine(o.arg.clone()),
-        ));
+        // `--set train.train.lr=0.01` sets one field inside the `train` param and keeps the rest.
+        let mut path = o.param.split('.');
+        let key = path.next().unwrap_or_default().to_string();
+        let rest: Vec<&str> = path.collect();
+        let value = if rest.is_empty() {
+            o.value.clone()
+        } else {
+            let mut v = given
+                .iter()
+                .find(|(k, ..)| k == &key)
+                .map_or(Yaml::Null, |(_, v, _)| v.clone());
+            crate::bench::plan::set_path(&mut v, &rest, &o.value);
+            v
+        };
+        given.retain(|(k, ..)| k != &key);
+        given.push((key, value, Loc::CommandLine(o.arg.clone())));
     }
     for (key, v, l) in &given {
         let Some(default) = defaults.get(key) else {
@@ -1408,5 +1418,23 @@ mod tests {
         .unwrap();
         assert!(e.to_string().contains("command line `a.value=abc`"), "{e}");
         assert!(Override::parse("novalue").is_err());
+    }
+
+    #[test]
+    fn overrides_reach_inside_nested_params_and_keep_their_siblings() {
+        let text =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/pipeline.yaml")).unwrap();
+        let sets = ["train.train.lr=0.01", "train.sampling.samples=16"];
+        let o: Vec<Override> = sets.iter().map(|s| Override::parse(s).unwrap()).collect();
+        let p = parse(Path::new("pipeline.yaml"), &text, &o).unwrap();
+        let train = &p.stages[p.index_of("train").unwrap()].params;
+        assert_eq!(train["train"]["lr"], 0.01);
+        assert_eq!(train["train"]["iterations"], 1000, "sibling kept: {train}");
+        assert_eq!(train["sampling"]["samples"], 16);
+        let bad = Override::parse("train.train.no_such_field=1").unwrap();
+        let e = parse(Path::new("pipeline.yaml"), &text, &[bad])
+            .err()
+            .unwrap();
+        assert!(e.to_string().contains("no_such_field"), "{e}");
     }
 }
