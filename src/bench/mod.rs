@@ -302,6 +302,39 @@ fn ours(rows: &[Row], run: &plan::Run, semantics: bool, metric: &str) -> Option<
     )
 }
 
+/// Training time to come within 1 mIoU of the first variant's largest budget (the stand-in for
+/// the converged value), on one scene; None when the variant ran at fewer than two budgets.
+fn speed_to_goal(i: &ReportInput, scene: &str) -> Option<String> {
+    let variant = &i.opts.suite.variants.first()?.name;
+    let mut runs: Vec<&plan::Run> = i
+        .plan
+        .runs
+        .iter()
+        .filter(|r| r.scene == scene && &r.variant == variant)
+        .collect();
+    runs.sort_by_key(|r| r.budget);
+    let last = *runs.last()?;
+    if runs.len() < 2 {
+        return None;
+    }
+    let miou = |r: &plan::Run| ours(i.rows, r, true, "miou");
+    let reference = miou(last)?;
+    let wall = |r: &plan::Run| i.manifests[&r.instances[&i.plan.train_role]].wall_s;
+    let first = runs
+        .iter()
+        .find(|r| miou(r).is_some_and(|m| m >= reference - 0.01))?;
+    Some(format!(
+        "Speed to the goal: the largest budget ({} steps, {:.1} s of training) reaches {:.1} mIoU; the first budget within 1 mIoU of it is {} steps, {:.1} mIoU after {:.1} s of training ({} the goal of at most 60 s).",
+        last.budget,
+        wall(last),
+        reference * 100.0,
+        first.budget,
+        miou(first).unwrap_or(f64::NAN) * 100.0,
+        wall(first),
+        if wall(first) <= 60.0 { "within" } else { "over" },
+    ))
+}
+
 fn f(v: Option<f64>, scale: f64, digits: usize) -> String {
     v.map_or("—".into(), |v| format!("{:.*}", digits, v * scale))
 }
@@ -416,6 +449,9 @@ fn report_doc(i: &ReportInput) -> Doc {
             ],
             rows,
         );
+        if let Some(line) = speed_to_goal(i, &sc.name) {
+            d.p(line);
+        }
         if let Some(run) = i.plan.runs.iter().find(|r| r.scene == sc.name) {
             let rows = ["pseudo_labels", "first_primitive", "fixed_field"]
                 .iter()
