@@ -12,6 +12,8 @@
 
 use std::collections::HashMap;
 
+use rayon::prelude::*;
+
 use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 use serde::{Deserialize, Serialize};
 
@@ -568,8 +570,47 @@ pub fn fixed_instance_at(set: &RaySet, r: usize, t: f32, out: &mut [f32]) -> boo
 }
 
 /// Builds the batch of rays `ray_ids`. `seed` drives the stratified jitter (None: stratum
-/// centres, for rendering).
+/// centres, for rendering). Chunks of rays are built in parallel; each ray has its own
+/// generator, so the batch does not depend on the thread count.
 pub fn sample_batch(
+    set: &RaySet,
+    ray_ids: &[u32],
+    p: &SamplingParams,
+    seed: Option<u64>,
+) -> SampleBatch {
+    const CHUNK: usize = 128;
+    if ray_ids.len() <= CHUNK {
+        return sample_rays(set, ray_ids, p, seed);
+    }
+    let parts: Vec<SampleBatch> = ray_ids
+        .par_chunks(CHUNK)
+        .map(|ids| sample_rays(set, ids, p, seed))
+        .collect();
+    let mut b = SampleBatch {
+        rays: ray_ids.len(),
+        samples: p.per_ray(),
+        classes: set.classes.len(),
+        ..Default::default()
+    };
+    for part in parts {
+        b.ray_ids.extend(part.ray_ids);
+        b.positions.extend(part.positions);
+        b.dirs.extend(part.dirs);
+        b.deltas.extend(part.deltas);
+        b.t.extend(part.t);
+        b.fixed_semantic.extend(part.fixed_semantic);
+        b.unique_class.extend(part.unique_class);
+        b.target_rgb.extend(part.target_rgb);
+        b.label.extend(part.label);
+        b.u_mask.extend(part.u_mask);
+        b.depth.extend(part.depth);
+        b.z_scale.extend(part.z_scale);
+    }
+    b
+}
+
+/// [`sample_batch`] on one thread.
+fn sample_rays(
     set: &RaySet,
     ray_ids: &[u32],
     p: &SamplingParams,
@@ -651,6 +692,54 @@ mod tests {
             prim_class: vec![0, 1],
             prim_thing: vec![u32::MAX, 0],
             ..Default::default()
+        }
+    }
+
+    /// The toy ray 300 times, each with its own interval ends, label and depth.
+    fn many() -> RaySet {
+        let mut set = toy();
+        let one = toy();
+        set.offsets = vec![0];
+        for v in [&mut set.origin, &mut set.dir] {
+            v.clear();
+        }
+        set.t_in.clear();
+        set.t_out.clear();
+        set.prim.clear();
+        set.sky.clear();
+        set.rgb.clear();
+        set.label.clear();
+        set.u_mask.clear();
+        set.depth.clear();
+        set.z_scale.clear();
+        for k in 0..300 {
+            let x = k as f32 * 0.01;
+            set.origin.push(one.origin[0]);
+            set.dir.push(one.dir[0]);
+            set.z_scale.push(1.0);
+            set.t_in.extend([4.0 + x, 5.0 + x]);
+            set.t_out.extend([10.0 + x, 7.0]);
+            set.prim.extend([0, 1]);
+            set.offsets.push(set.t_in.len() as u32);
+            set.sky.push([10.0 + x, 60.0]);
+            set.rgb.push([x, 0.5, 1.0 - x]);
+            set.label.push((k % 3) as u16);
+            set.u_mask.push(k % 2 == 0);
+            set.depth.push(x);
+        }
+        set
+    }
+
+    #[test]
+    fn parallel_batches_equal_the_serial_ones() {
+        let set = many();
+        let p = SamplingParams::default();
+        let ids: Vec<u32> = (0..300).rev().chain(5..40).collect();
+        for seed in [Some(11), None] {
+            let par = sample_batch(&set, &ids, &p, seed);
+            let ser = sample_rays(&set, &ids, &p, seed);
+            assert_eq!(format!("{par:?}"), format!("{ser:?}"), "seed {seed:?}");
+            assert_eq!(par.rays, ids.len());
         }
     }
 

@@ -17,7 +17,7 @@ use crate::{
     fused::{FusedField, FusedTrainer},
     sampling::{self, RaySet, SampleBatch, SamplingParams, SplitMix},
     tables,
-    train::{batch_indices, LossTerm, RayBatch, RaySamples, RayTargets, TrainConfig, Trainer},
+    train::{BatchOrder, LossTerm, RayBatch, RaySamples, RayTargets, TrainConfig, Trainer},
     InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage,
 };
 
@@ -203,14 +203,12 @@ impl TypedStage for Train {
         let batch = p.train.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
         let mut log = LogColumns::default();
+        let mut order = BatchOrder::new(p.train.seed, candidates.len(), batch);
         for it in 0..iters {
             // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from
             // a SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share
             // all but one ray: training saw only ~iterations + batch distinct rays.)
-            let ids: Vec<u32> = batch_indices(p.train.seed, it, candidates.len(), batch)
-                .into_iter()
-                .map(|i| candidates[i])
-                .collect();
+            let ids: Vec<u32> = order.indices(it).iter().map(|&i| candidates[i]).collect();
             let jitter =
                 SplitMix(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64();
             let samples = sampling::sample_batch(&set, &ids, &p.sampling, Some(jitter));

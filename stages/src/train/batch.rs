@@ -189,21 +189,53 @@ impl RayBatch {
 /// `batch` ray indices out of `total` for iteration `iteration`: a seeded shuffle per epoch,
 /// consumed in order, so every ray is seen once per epoch and a run is reproducible.
 pub fn batch_indices(seed: u64, iteration: usize, total: usize, batch: usize) -> Vec<usize> {
-    assert!(total > 0, "no rays to draw from");
-    let batch = batch.min(total);
-    let per_epoch = total / batch;
-    let epoch = iteration / per_epoch;
-    let start = (iteration % per_epoch) * batch;
-    let mut order: Vec<usize> = (0..total).collect();
-    // Hash the (seed, epoch) pair first: SplitMix streams seeded `k * GOLDEN` apart are the same
-    // stream shifted by k, which would make consecutive epochs' orders nearly equal.
-    let mut rng = SplitMix64::new(
-        SplitMix64::new(seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64(),
-    );
-    for i in (1..total).rev() {
-        order.swap(i, rng.below(i + 1));
+    BatchOrder::new(seed, total, batch)
+        .indices(iteration)
+        .to_vec()
+}
+
+/// [`batch_indices`] for consecutive iterations, shuffling once per epoch instead of once per
+/// call.
+pub struct BatchOrder {
+    seed: u64,
+    batch: usize,
+    epoch: Option<usize>,
+    order: Vec<usize>,
+}
+
+impl BatchOrder {
+    pub fn new(seed: u64, total: usize, batch: usize) -> Self {
+        assert!(total > 0, "no rays to draw from");
+        Self {
+            seed,
+            batch: batch.min(total),
+            epoch: None,
+            order: (0..total).collect(),
+        }
     }
-    order[start..start + batch].to_vec()
+
+    /// The indices of `iteration` (equal to `batch_indices(seed, iteration, total, batch)`).
+    pub fn indices(&mut self, iteration: usize) -> &[usize] {
+        let total = self.order.len();
+        let per_epoch = total / self.batch;
+        let epoch = iteration / per_epoch;
+        if self.epoch != Some(epoch) {
+            self.order.iter_mut().enumerate().for_each(|(i, o)| *o = i);
+            // Hash the (seed, epoch) pair first: SplitMix streams seeded `k * GOLDEN` apart are
+            // the same stream shifted by k, which would make consecutive epochs' orders nearly
+            // equal.
+            let mut rng = SplitMix64::new(
+                SplitMix64::new(self.seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+                    .next_u64(),
+            );
+            for i in (1..total).rev() {
+                self.order.swap(i, rng.below(i + 1));
+            }
+            self.epoch = Some(epoch);
+        }
+        let start = (iteration % per_epoch) * self.batch;
+        &self.order[start..start + self.batch]
+    }
 }
 
 fn gather<T: Copy>(values: &[T], indices: &[usize], width: usize) -> Vec<T> {
@@ -225,6 +257,16 @@ mod tests {
         assert_eq!(seen, (0..50).collect::<Vec<_>>());
         assert_eq!(batch_indices(9, 3, 50, 10), batch_indices(9, 3, 50, 10));
         assert_ne!(batch_indices(9, 0, 50, 10), batch_indices(9, 5, 50, 10));
+    }
+
+    #[test]
+    fn a_reused_order_gives_the_batches_of_a_fresh_shuffle() {
+        let mut order = BatchOrder::new(4, 53, 10);
+        // across epochs (5 batches each, 3 rays left over) and back to an earlier one
+        for it in (0..23).chain([2, 17, 0]) {
+            let fresh = BatchOrder::new(4, 53, 10).indices(it).to_vec();
+            assert_eq!(order.indices(it), &fresh[..], "iteration {it}");
+        }
     }
 
     #[test]

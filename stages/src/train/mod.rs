@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::field::FieldConfig;
 
-pub use batch::{batch_indices, RayBatch, RaySamples, RayTargets};
+pub use batch::{batch_indices, BatchOrder, RayBatch, RaySamples, RayTargets};
 pub use infer::{render_rays, RenderedRays};
 pub use loss::{LossTerm, PROB_EPS};
 pub use step::{train, LogRow, LossTerms, TrainError, Trained, Trainer};
