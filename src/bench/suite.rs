@@ -310,9 +310,18 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
             format!("`{}`: expected STAGE.PARAM[.FIELD...]", raw.budget_param),
         ));
     }
-    let ablation_budget = raw
-        .ablation_budget
-        .unwrap_or_else(|| *raw.budgets.iter().max().expect("budgets checked non-empty"));
+    // Default: the largest budget every variant ran at (so the table has every row), else the
+    // largest budget.
+    let ablation_budget = raw.ablation_budget.unwrap_or_else(|| {
+        let ran_at = |v: &VariantFile| v.budgets.clone().unwrap_or_else(|| raw.budgets.clone());
+        raw.budgets
+            .iter()
+            .chain(raw.variants.iter().flat_map(|v| v.budgets.iter().flatten()))
+            .filter(|b| raw.variants.iter().all(|v| ran_at(v).contains(b)))
+            .max()
+            .copied()
+            .unwrap_or_else(|| *raw.budgets.iter().max().expect("budgets checked non-empty"))
+    });
     Ok(Suite {
         name: raw.name,
         description: raw.description,
@@ -344,6 +353,16 @@ mod tests {
             assert_eq!(&s.name, name);
             assert!(s.variants.iter().any(|v| v.name == "complete"));
         }
+    }
+
+    #[test]
+    fn the_ablation_defaults_to_the_largest_budget_every_variant_ran_at() {
+        assert_eq!(load("quick").unwrap().unwrap().ablation_budget, 400);
+        assert_eq!(load("standard").unwrap().unwrap().ablation_budget, 1700);
+        let text = "name: x\nscenes: [{name: a}]\nbudgets: [1, 5, 9]\nvariants:\n  - {name: complete}\n  - {name: v, budgets: [1, 5]}\n";
+        assert_eq!(parse(Path::new("s.yaml"), text).unwrap().ablation_budget, 5);
+        let text = "name: x\nscenes: [{name: a}]\nbudgets: [1, 5, 9]\nvariants:\n  - {name: complete}\n  - {name: v, budgets: [7]}\n";
+        assert_eq!(parse(Path::new("s.yaml"), text).unwrap().ablation_budget, 9);
     }
 
     #[test]
