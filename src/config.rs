@@ -1216,39 +1216,32 @@ fn stage_decl(
             ))
         }
     }
-    for set in sets {
-        let key = &set.path[0];
-        let value = if set.path.len() == 1 {
-            set.value.clone()
+    // Scene settings, then `--set` overrides (`--set train.train.lr=0.01` sets one field inside
+    // the `train` param and keeps the rest): `[param, field...]`, the value, where it was given.
+    let settings = sets
+        .iter()
+        .map(|s| {
+            let path: Vec<&str> = s.path.iter().map(String::as_str).collect();
+            (path, &s.value, s.loc.clone())
+        })
+        .chain(overrides.iter().map(|o| {
+            let path: Vec<&str> = o.param.split('.').collect();
+            (path, &o.value, Loc::CommandLine(o.arg.clone()))
+        }));
+    for (path, value, loc) in settings {
+        let key = path[0].to_string();
+        let value = if path.len() == 1 {
+            value.clone()
         } else {
             let mut v = given
                 .iter()
-                .find(|(k, ..)| k == key)
+                .find(|(k, ..)| *k == key)
                 .map_or(Yaml::Null, |(_, v, _)| v.clone());
-            let rest: Vec<&str> = set.path[1..].iter().map(String::as_str).collect();
-            crate::bench::plan::set_path(&mut v, &rest, &set.value);
+            crate::bench::plan::set_path(&mut v, &path[1..], value);
             v
         };
-        given.retain(|(k, ..)| k != key);
-        given.push((key.clone(), value, set.loc.clone()));
-    }
-    for o in overrides {
-        // `--set train.train.lr=0.01` sets one field inside the `train` param and keeps the rest.
-        let mut path = o.param.split('.');
-        let key = path.next().unwrap_or_default().to_string();
-        let rest: Vec<&str> = path.collect();
-        let value = if rest.is_empty() {
-            o.value.clone()
-        } else {
-            let mut v = given
-                .iter()
-                .find(|(k, ..)| k == &key)
-                .map_or(Yaml::Null, |(_, v, _)| v.clone());
-            crate::bench::plan::set_path(&mut v, &rest, &o.value);
-            v
-        };
-        given.retain(|(k, ..)| k != &key);
-        given.push((key, value, Loc::CommandLine(o.arg.clone())));
+        given.retain(|(k, ..)| *k != key);
+        given.push((key, value, loc));
     }
     for (key, v, l) in &given {
         let Some(default) = defaults.get(key) else {

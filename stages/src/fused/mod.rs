@@ -306,6 +306,8 @@ impl Work {
                 lookup_level(&c.grid, l, level, u, idx, w);
             }
             let enc = self.enc[..n * e].chunks_exact_mut(e);
+            // The default 2 features per level, unrolled: the generic loop made the whole step
+            // ~20 % slower (train_step 4096x32: 81.9 vs 101.6 ms).
             if feats == 2 {
                 for ((out, idx), w) in enc.zip(idx.chunks_exact(8)).zip(w.chunks_exact(8)) {
                     let mut acc = [0f32; 2];
