@@ -173,6 +173,52 @@ fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing a plot: {e:?}")
 }
 
+/// The corner whose legend box would cover the fewest points of the panel's lines (sampled along
+/// every segment), so the legend does not hide the data; ties prefer the upper right.
+fn legend_corner(panel: &Panel, x_max: f64, y_min: f64, y_max: f64) -> SeriesLabelPosition {
+    let (w, h) = (x_max.max(1e-12), (y_max - y_min).max(1e-12));
+    let mut samples = Vec::new();
+    for s in &panel.series {
+        let line: Vec<(f64, f64)> = if s.flat {
+            let y = s.points.first().map_or(0.0, |p| p.1);
+            vec![(0.0, y), (x_max, y)]
+        } else {
+            s.points.clone()
+        };
+        samples.extend(line.first().copied());
+        for seg in line.windows(2) {
+            samples.extend((1..=16).map(|k| {
+                let t = k as f64 / 16.0;
+                (
+                    seg[0].0 + t * (seg[1].0 - seg[0].0),
+                    seg[0].1 + t * (seg[1].1 - seg[0].1),
+                )
+            }));
+        }
+    }
+    // A legend box spans about 45 % of the width and 35 % of the height from its corner.
+    let covered = |right: bool, upper: bool| {
+        samples
+            .iter()
+            .filter(|&&(x, y)| {
+                let (fx, fy) = (x / w, (y - y_min) / h);
+                (if right { fx > 0.55 } else { fx < 0.45 })
+                    && (if upper { fy > 0.65 } else { fy < 0.35 })
+            })
+            .count()
+    };
+    [
+        (SeriesLabelPosition::UpperRight, true, true),
+        (SeriesLabelPosition::LowerRight, true, false),
+        (SeriesLabelPosition::UpperLeft, false, true),
+        (SeriesLabelPosition::LowerLeft, false, false),
+    ]
+    .into_iter()
+    .min_by_key(|&(_, right, upper)| covered(right, upper))
+    .map(|(p, ..)| p)
+    .expect("four corners")
+}
+
 /// Draws the panels side by side and encodes the image as PNG.
 pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
     let (pw, h) = (440u32, 380u32);
@@ -237,7 +283,7 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
                 .background_style(WHITE.mix(0.8))
                 .border_style(BLACK)
                 .label_font(("sans-serif", 18).into_font())
-                .position(SeriesLabelPosition::UpperRight)
+                .position(legend_corner(panel, x1 * 1.08, y0 - pad, y1 + pad))
                 .draw()
                 .map_err(draw_err)?;
         }
@@ -320,4 +366,52 @@ pub fn time_vs_error(
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn panel(points: &[(f64, f64)], flat_at: Option<f64>) -> Panel {
+        let mut series = vec![Series {
+            label: "ours".into(),
+            points: points.to_vec(),
+            flat: false,
+            color: 2,
+        }];
+        if let Some(y) = flat_at {
+            series.push(Series {
+                label: "baseline".into(),
+                points: vec![(0.0, y)],
+                flat: true,
+                color: 0,
+            });
+        }
+        Panel {
+            title: "t".into(),
+            series,
+        }
+    }
+
+    #[test]
+    fn the_legend_goes_where_the_lines_are_not() {
+        // rising to the upper right: the lower right is free
+        let rising = panel(&[(0.0, 0.0), (1.0, 8.0), (10.0, 10.0)], None);
+        assert_eq!(
+            legend_corner(&rising, 10.0, 0.0, 10.0),
+            SeriesLabelPosition::LowerRight
+        );
+        // falling, with a baseline along the bottom: only the upper right is free
+        let falling = panel(&[(0.0, 10.0), (2.0, 5.0), (10.0, 4.0)], Some(0.5));
+        assert_eq!(
+            legend_corner(&falling, 10.0, 0.0, 10.0),
+            SeriesLabelPosition::UpperRight
+        );
+        // rising with a baseline across the bottom: the upper left is free
+        let crowded = panel(&[(0.0, 4.0), (5.0, 5.0), (10.0, 10.0)], Some(0.5));
+        assert_eq!(
+            legend_corner(&crowded, 10.0, 0.0, 10.0),
+            SeriesLabelPosition::UpperLeft
+        );
+    }
 }
