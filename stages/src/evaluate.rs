@@ -24,7 +24,8 @@ use crate::{
         multiview_consistency, ConfusionMatrix, Consistency, DepthAccumulator, LabelledView,
         PanopticAccumulator, PanopticConfig, Pinhole,
     },
-    tables, InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage,
+    tables, InputSlot, Inputs, MethodInfo, MetricInfo, Progress, Result, ScoreSpec, StageError,
+    Tables, TypedStage,
 };
 
 /// Methods in the order tables and reports list them.
@@ -66,6 +67,63 @@ impl Default for EvaluateParams {
 }
 
 pub struct Evaluate;
+
+const fn pct(name: &'static str, label: &'static str) -> MetricInfo {
+    MetricInfo {
+        name,
+        label,
+        unit: "%",
+        scale: 100.0,
+        decimals: 1,
+        semantic: true,
+    }
+}
+
+/// How the `metrics` table reads (for `pipe bench`).
+pub const SCORES: ScoreSpec = ScoreSpec {
+    table: "metrics",
+    method: "panoptic_nerf",
+    baselines: &[
+        MethodInfo {
+            name: "pseudo_labels",
+            label: "pseudo labels",
+            depends_on_budget: false,
+        },
+        MethodInfo {
+            name: "first_primitive",
+            label: "first primitive",
+            depends_on_budget: false,
+        },
+        MethodInfo {
+            name: "fixed_field",
+            label: "fixed field",
+            depends_on_budget: true,
+        },
+    ],
+    metrics: &[
+        pct("miou", "mIoU"),
+        pct("acc", "Acc"),
+        pct("pq", "PQ"),
+        pct("mc", "MC"),
+        MetricInfo {
+            name: "depth_rmse",
+            label: "depth RMSE",
+            unit: "m",
+            scale: 1.0,
+            decimals: 2,
+            semantic: false,
+        },
+        MetricInfo {
+            semantic: false,
+            ..pct("depth_delta_1_25", "delta<1.25")
+        },
+    ],
+    headline: "miou",
+    per_run: &["miou", "acc", "pq", "depth_rmse", "depth_delta_1_25"],
+    per_baseline: &["miou", "acc", "pq", "mc"],
+    ablation: &["depth_rmse", "depth_delta_1_25", "miou", "acc"],
+    plotted: &["miou", "pq", "depth_rmse"],
+};
 
 /// One image's maps, keyed by (frame, camera).
 struct Image<'a> {
@@ -221,6 +279,7 @@ impl TypedStage for Evaluate {
             doc: "rendered labels",
         },
     ];
+    const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
     const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt"];
 
     fn validate(p: &EvaluateParams) -> Result<()> {

@@ -148,6 +148,7 @@ impl TypedStage for Train {
         },
     ];
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
+    const BUDGET_PARAM: Option<&'static str> = Some("train.iterations");
 
     fn validate(p: &TrainParams) -> Result<()> {
         p.train.validate().map_err(StageError::Params)?;

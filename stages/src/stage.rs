@@ -1,0 +1,267 @@
+//! The contract between the runner and a stage kind: named input tables and validated
+//! parameters in, named output tables out; the runner alone knows about hashing, caching,
+//! ordering and timing. Every output table has its Arrow schema in `data_schema/<table>.json`
+//! ([`crate::schema`]).
+
+use std::{collections::BTreeMap, fmt, path::Path, path::PathBuf};
+
+use arrow::record_batch::RecordBatch;
+use serde::{de::DeserializeOwned, Serialize};
+use serde_json::Value;
+
+/// Named tables: what a stage writes, and what an upstream stage hands to a downstream one.
+pub type Tables = BTreeMap<String, RecordBatch>;
+
+/// Why a stage could not produce its outputs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StageError {
+    /// The parameters are invalid (the runner reports this as a configuration error, exit 2).
+    Params(String),
+    /// An input table or file is missing or malformed.
+    Input(String),
+    /// The computation itself failed (e.g. training diverged).
+    Failed(String),
+}
+
+impl fmt::Display for StageError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            StageError::Params(m) => write!(f, "invalid params: {m}"),
+            StageError::Input(m) => write!(f, "bad input: {m}"),
+            StageError::Failed(m) => write!(f, "{m}"),
+        }
+    }
+}
+
+impl std::error::Error for StageError {}
+
+pub type Result<T, E = StageError> = std::result::Result<T, E>;
+
+/// One named input slot of a stage kind (e.g. `scene` for the rays stage).
+#[derive(Debug, Clone, Copy)]
+pub struct InputSlot {
+    pub name: &'static str,
+    /// Tables the stage reads from this slot; the runner checks the upstream stage writes them.
+    pub tables: &'static [&'static str],
+    pub optional: bool,
+    pub doc: &'static str,
+}
+
+/// Progress reporting from inside a stage body (drawn by the runner as a bar).
+pub trait Progress: Sync {
+    /// `done` of `total` units of work, with a short message (e.g. the current losses).
+    fn update(&self, done: u64, total: u64, message: &str);
+}
+
+/// Progress sink that drops everything (tests, quiet runs).
+pub struct NoProgress;
+impl Progress for NoProgress {
+    fn update(&self, _: u64, _: u64, _: &str) {}
+}
+
+/// The inputs of one stage run: slot name -> the upstream stage's tables.
+pub struct Inputs<'a> {
+    slots: BTreeMap<String, &'a Tables>,
+}
+
+impl<'a> Inputs<'a> {
+    pub fn new(slots: BTreeMap<String, &'a Tables>) -> Self {
+        Self { slots }
+    }
+
+    /// Whether the optional slot `slot` is connected.
+    pub fn has(&self, slot: &str) -> bool {
+        self.slots.contains_key(slot)
+    }
+
+    /// Table `table` of the stage connected to `slot`.
+    pub fn table(&self, slot: &str, table: &str) -> Result<&'a RecordBatch> {
+        let tables = self
+            .slots
+            .get(slot)
+            .ok_or_else(|| StageError::Input(format!("input slot `{slot}` is not connected")))?;
+        tables.get(table).ok_or_else(|| {
+            StageError::Input(format!(
+                "input `{slot}` has no table `{table}` (it has: {})",
+                tables.keys().cloned().collect::<Vec<_>>().join(", ")
+            ))
+        })
+    }
+
+    /// Like [`Inputs::table`] but `None` when the slot is not connected.
+    pub fn optional_table(&self, slot: &str, table: &str) -> Result<Option<&'a RecordBatch>> {
+        if self.has(slot) {
+            self.table(slot, table).map(Some)
+        } else {
+            Ok(None)
+        }
+    }
+}
+
+/// The type-erased interface the runner sees. Implement [`TypedStage`] instead.
+pub trait Stage: Send + Sync {
+    /// Registry name, used in pipeline.yaml `uses:`.
+    fn kind(&self) -> &'static str;
+    /// Code version: bump whenever outputs change for the same inputs and params.
+    fn version(&self) -> u32;
+    fn description(&self) -> &'static str;
+    fn inputs(&self) -> &'static [InputSlot];
+    /// Names of the tables this kind writes (each has `data_schema/<name>.json`).
+    fn outputs(&self) -> &'static [&'static str];
+    /// Default parameters as a JSON object.
+    fn default_params(&self) -> Value;
+    /// Checks full parameters (defaults filled in) and returns their canonical form.
+    fn canonical_params(&self, params: &Value) -> Result<Value>;
+    fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
+    /// Writes the stage's human-facing files (PNGs, reports) into `dir`; returns what it wrote.
+    fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>>;
+    /// Files and directories outside the cache this run will read (e.g. a KITTI-360 root); the
+    /// runner hashes their content into the stage's key, so editing one re-runs the stage.
+    fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>>;
+    /// How this kind's score table reads, if it scores methods (see [`ScoreSpec`]).
+    fn scores(&self) -> Option<&'static ScoreSpec>;
+    /// The parameter (dotted path inside the params) that sets how much work the stage does,
+    /// e.g. training iterations: what a time-against-error sweep varies.
+    fn budget_param(&self) -> Option<&'static str>;
+}
+
+/// A stage kind with typed parameters. Params are a serde struct with `#[serde(default,
+/// deny_unknown_fields)]`; its `Default` gives the defaults the cache key fills in.
+pub trait TypedStage: Send + Sync {
+    type Params: Serialize + DeserializeOwned + Default;
+    const KIND: &'static str;
+    const VERSION: u32;
+    const DESCRIPTION: &'static str;
+    const INPUTS: &'static [InputSlot];
+    const OUTPUTS: &'static [&'static str];
+    /// See [`Stage::scores`].
+    const SCORES: Option<&'static ScoreSpec> = None;
+    /// See [`Stage::budget_param`].
+    const BUDGET_PARAM: Option<&'static str> = None;
+
+    /// Semantic checks beyond types (ranges, consistency). Errors name the param.
+    fn validate(_params: &Self::Params) -> Result<()> {
+        Ok(())
+    }
+    fn run(
+        &self,
+        params: &Self::Params,
+        inputs: &Inputs,
+        progress: &dyn Progress,
+    ) -> Result<Tables>;
+    fn export(
+        &self,
+        _params: &Self::Params,
+        _tables: &Tables,
+        _dir: &Path,
+    ) -> Result<Vec<PathBuf>> {
+        Ok(Vec::new())
+    }
+    /// Files outside the cache the stage reads (see [`Stage::external_inputs`]).
+    fn external_inputs(&self, _params: &Self::Params) -> Result<Vec<PathBuf>> {
+        Ok(Vec::new())
+    }
+}
+
+fn typed_params<P: DeserializeOwned>(params: &Value) -> Result<P> {
+    serde_json::from_value(params.clone()).map_err(|e| StageError::Params(e.to_string()))
+}
+
+impl<T: TypedStage> Stage for T {
+    fn kind(&self) -> &'static str {
+        T::KIND
+    }
+    fn version(&self) -> u32 {
+        T::VERSION
+    }
+    fn description(&self) -> &'static str {
+        T::DESCRIPTION
+    }
+    fn inputs(&self) -> &'static [InputSlot] {
+        T::INPUTS
+    }
+    fn outputs(&self) -> &'static [&'static str] {
+        T::OUTPUTS
+    }
+    fn default_params(&self) -> Value {
+        serde_json::to_value(T::Params::default()).expect("params serialise to JSON")
+    }
+    fn canonical_params(&self, params: &Value) -> Result<Value> {
+        let p: T::Params = typed_params(params)?;
+        T::validate(&p)?;
+        serde_json::to_value(&p).map_err(|e| StageError::Params(e.to_string()))
+    }
+    fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let p: T::Params = typed_params(params)?;
+        TypedStage::run(self, &p, inputs, progress)
+    }
+    fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+        let p: T::Params = typed_params(params)?;
+        TypedStage::export(self, &p, tables, dir)
+    }
+    fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>> {
+        let p: T::Params = typed_params(params)?;
+        TypedStage::external_inputs(self, &p)
+    }
+    fn scores(&self) -> Option<&'static ScoreSpec> {
+        T::SCORES
+    }
+    fn budget_param(&self) -> Option<&'static str> {
+        T::BUDGET_PARAM
+    }
+}
+
+/// What a kind that scores methods writes, for tools that read its table without knowing the
+/// method (`pipe bench`): the table, the methods in it, and how to show each metric.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ScoreSpec {
+    /// Table with columns `method` and `metric` (utf8) and `value` (float64; null: undefined).
+    pub table: &'static str,
+    /// The method the pipeline produces.
+    pub method: &'static str,
+    /// The other methods scored in the same table, in display order.
+    pub baselines: &'static [MethodInfo],
+    /// Every metric a report may show, in display order.
+    pub metrics: &'static [MetricInfo],
+    /// The metric that says how good a run is (e.g. for the time to come near the best run).
+    pub headline: &'static str,
+    /// Metrics of the method per run (the time-against-error table).
+    pub per_run: &'static [&'static str],
+    /// Metrics of the baselines.
+    pub per_baseline: &'static [&'static str],
+    /// Metrics of an ablation table.
+    pub ablation: &'static [&'static str],
+    /// Metrics drawn against training time.
+    pub plotted: &'static [&'static str],
+}
+
+/// A method of a [`ScoreSpec`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct MethodInfo {
+    pub name: &'static str,
+    pub label: &'static str,
+    /// Whether its scores depend on the budget of the run (else: a flat line against time).
+    pub depends_on_budget: bool,
+}
+
+/// How to show one metric of a [`ScoreSpec`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct MetricInfo {
+    pub name: &'static str,
+    /// Short label, e.g. `mIoU`.
+    pub label: &'static str,
+    /// Unit after scaling, e.g. `%` or `m`.
+    pub unit: &'static str,
+    /// Shown as `value * scale` with `decimals` digits.
+    pub scale: f64,
+    pub decimals: usize,
+    /// Only meaningful when the run is supervised with labels (a depth metric is not).
+    pub semantic: bool,
+}
+
+impl ScoreSpec {
+    /// The metric called `name`.
+    pub fn metric(&self, name: &str) -> Option<&'static MetricInfo> {
+        self.metrics.iter().find(|m| m.name == name)
+    }
+}
