@@ -30,13 +30,13 @@ fn sigkill_at_random_moments_never_corrupts_the_cache() {
     let want = metrics_bytes(&reference);
 
     let ws = Workspace::new(common::TINY_PIPELINE);
-    let mut rng = stages::sampling::SplitMix(20261122);
+    let mut rng = stages::rng::SplitMix64::new(20261122);
     let mut kills = 0;
     let mut attempts = 0;
     while kills < 24 && attempts < 200 {
         attempts += 1;
         // Kill somewhere in the remaining work: spread over the whole uninterrupted duration.
-        let delay = Duration::from_secs_f64(full.as_secs_f64() * rng.next_f32() as f64 * 0.9);
+        let delay = Duration::from_secs_f64(full.as_secs_f64() * rng.unit() as f64 * 0.9);
         let mut child = ws.spawn(&[]);
         thread::sleep(delay);
         if child.try_wait().unwrap().is_some() {

@@ -155,7 +155,7 @@ fn the_exported_synthetic_scene_runs_through_the_pipeline_with_the_same_metrics(
         assert!(root.join(f).exists(), "the export lacks {f}");
     }
     let a = tables(&synth, "scene");
-    let origin = kitti360_export::scene_info(&a).unwrap().origin.to_array();
+    let origin = stages::scene::io::scene_info(&a).unwrap().origin.to_array();
 
     let kitti = Workspace::new(&kitti_pipeline(&root, origin));
     kitti.run_ok(&[]);

@@ -9,7 +9,7 @@ use std::hint::black_box;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use stages::{
     geometry::{demo::city_scene, Bvh},
-    rays::{plan_image, IntersectParams},
+    intervals::{plan_image, IntersectParams},
 };
 
 fn bench(c: &mut Criterion) {

@@ -1,15 +1,16 @@
 //! Micro-benchmark: one training step (host prep + forward + 5 losses + backward + clipping +
-//! Adam) at 1024 and 4096 rays x 32 samples, per compiled-in backend and per encoding.
+//! Adam) at 1024 and 4096 rays x 32 samples, per compiled-in engine and per encoding.
 //!
 //! Run: `cargo bench -p stages --bench train_step` (add `--features ndarray` to compare with
 //! burn-ndarray; `BENCH_STEPS=n` sets the timed steps, default 5, after 2 warm-up steps).
 
 use std::time::Instant;
 
-use stages::field::mlp::SplitMix64;
-use stages::field::{Backend, EncodingKind, FieldConfig, FieldSpec};
-use stages::fused::{FusedField, FusedTrainer};
-use stages::train::{RayBatch, RaySamples, RayTargets, TrainConfig, Trainer};
+use stages::model::fused::{FusedField, FusedTrainer};
+use stages::model::{
+    EncodingKind, Engine, FieldConfig, FieldSpec, RayBatch, RaySamples, RayTargets, TrainConfig,
+};
+use stages::rng::SplitMix64;
 
 const SAMPLES: usize = 32;
 const CLASSES: usize = 10;
@@ -70,7 +71,7 @@ fn bench_fused(steps: usize) {
             aabb_max: [12.0, 12.0, 40.0],
             seed: 0,
         };
-        let init = FusedField::from_field(&spec.init(&Backend::default().device())).expect("grid");
+        let init = FusedField::init(spec).expect("grid");
         let mut trainer = FusedTrainer::new(config, init).expect("trainer");
         let batch = random_batch(rays, 1);
         for _ in 0..2 {
@@ -122,7 +123,10 @@ fn main() {
     if std::env::var("BENCH_FUSED_ONLY").is_ok() {
         return;
     }
-    for backend in Backend::available() {
+    for engine in Engine::available() {
+        if engine == Engine::Fused {
+            continue; // timed above, with its phases
+        }
         for (name, field) in &configs {
             for rays in [1024, 4096] {
                 if field.encoding == EncodingKind::Pe
@@ -143,7 +147,7 @@ fn main() {
                     aabb_max: [12.0, 12.0, 40.0],
                     seed: 0,
                 };
-                let mut trainer = Trainer::new(config, spec, backend).expect("trainer");
+                let mut trainer = engine.trainer(&config, spec).expect("trainer");
                 let batch = random_batch(rays, 1);
                 for _ in 0..2 {
                     trainer.step(&batch).expect("warm-up step");
@@ -158,7 +162,7 @@ fn main() {
                 let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
                 println!(
                     "{:<8} {:<5} {:>6} {:>10.1} {:>10.1}",
-                    backend.name(),
+                    engine.name(),
                     name,
                     rays,
                     mean,

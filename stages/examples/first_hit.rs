@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 
 use stages::{
     geometry::{cameras_to_table, demo, primitives_to_table, CameraRow},
-    rays::{Intersect, IntersectParams},
+    intervals::IntersectParams,
+    kinds::intersect::Intersect,
     Inputs, NoProgress, Tables, TypedStage,
 };
 

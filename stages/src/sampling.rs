@@ -17,10 +17,11 @@ use rayon::prelude::*;
 use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 use serde::{Deserialize, Serialize};
 
-use crate::{
-    geometry::{self, Primitive},
-    labels, tables, Inputs, Result, StageError,
-};
+use crate::geometry::{self, Primitive};
+use crate::intervals::{plan_image, IntersectParams};
+use crate::rng::SplitMix64;
+use crate::stage::{Inputs, Result, StageError};
+use crate::{labels, tables};
 
 /// Index meaning "no class / no label".
 pub const NONE: u16 = u16::MAX;
@@ -380,6 +381,68 @@ impl RaySet {
         Ok(set)
     }
 
+    /// The rays of new cameras (`(frame, camera id, camera)`) over the primitives of `base`,
+    /// intersected with `prims` with the `intersect` kind's defaults; they have no input colour,
+    /// labels or depth.
+    pub fn for_cameras(
+        base: &RaySet,
+        prims: &[Primitive],
+        cams: &[(u32, u8, geometry::Camera)],
+    ) -> RaySet {
+        let bvh = geometry::Bvh::build(prims);
+        let ip = IntersectParams::default();
+        let mut set = RaySet {
+            classes: base.classes.clone(),
+            things: base.things.clone(),
+            prim_class: base.prim_class.clone(),
+            prim_thing: base.prim_thing.clone(),
+            bounds_min: base.bounds_min,
+            bounds_max: base.bounds_max,
+            ..Default::default()
+        };
+        set.offsets.push(0);
+        for (frame, camera, cam) in cams {
+            let plan = plan_image(prims, &bvh, cam, &ip);
+            set.images.push(ImageInfo {
+                frame: *frame,
+                camera: *camera,
+                width: cam.width,
+                height: cam.height,
+                first_ray: set.origin.len(),
+                cam: cam.clone(),
+            });
+            let origin = cam.centre();
+            let mut j = 0usize;
+            for y in 0..cam.height {
+                for x in 0..cam.width {
+                    let p = (y * cam.width + x) as usize;
+                    let ray = cam.pixel_ray(x, y);
+                    set.origin
+                        .push([origin.x as f32, origin.y as f32, origin.z as f32]);
+                    set.dir
+                        .push([ray.dir.x as f32, ray.dir.y as f32, ray.dir.z as f32]);
+                    set.z_scale
+                        .push(cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5).z as f32);
+                    let nh = plan.hits[p] as usize;
+                    for i in j..j + nh {
+                        set.t_in.push(plan.t_in[i]);
+                        set.t_out.push(plan.t_out[i].max(plan.t_in[i]));
+                        set.prim.push(plan.prim[i]);
+                    }
+                    j += nh;
+                    set.offsets.push(set.t_in.len() as u32);
+                    set.sky
+                        .push([plan.sky_t0[p], plan.sky_t1[p].max(plan.sky_t0[p])]);
+                    set.rgb.push([0.0; 3]);
+                    set.label.push(NONE);
+                    set.u_mask.push(false);
+                    set.depth.push(0.0);
+                }
+            }
+        }
+        set
+    }
+
     pub fn len(&self) -> usize {
         self.origin.len()
     }
@@ -435,39 +498,20 @@ pub struct SampleBatch {
     pub z_scale: Vec<f32>,
 }
 
-/// SplitMix64: a tiny deterministic generator; one per ray so batches do not depend on thread
-/// scheduling.
-#[derive(Debug, Clone)]
-pub struct SplitMix(pub u64);
-
-impl SplitMix {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    pub fn next_f32(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
-
 /// Places the samples of one ray: writes `t` and `delta` (`per_ray` entries each, padding with
 /// delta 0 at the end). `jitter` = None puts samples at stratum centres (rendering).
 pub fn place_samples(
     set: &RaySet,
     r: usize,
     p: &SamplingParams,
-    mut jitter: Option<&mut SplitMix>,
+    mut jitter: Option<&mut SplitMix64>,
     t_out: &mut [f32],
     delta_out: &mut [f32],
 ) {
     let s_total = p.per_ray();
     debug_assert_eq!(t_out.len(), s_total);
     let mut n = 0;
-    let mut put = |t0: f32, t1: f32, count: usize, jitter: &mut Option<&mut SplitMix>| {
+    let mut put = |t0: f32, t1: f32, count: usize, jitter: &mut Option<&mut SplitMix64>| {
         if count == 0 || t1 <= t0 {
             return;
         }
@@ -476,7 +520,7 @@ pub fn place_samples(
             if n >= s_total {
                 return;
             }
-            let u = jitter.as_mut().map_or(0.5, |g| g.next_f32());
+            let u = jitter.as_mut().map_or(0.5, |g| g.unit());
             t_out[n] = t0 + (i as f32 + u) * w;
             delta_out[n] = w;
             n += 1;
@@ -636,7 +680,8 @@ fn sample_rays(
     };
     for (i, &rid) in ray_ids.iter().enumerate() {
         let r = rid as usize;
-        let mut rng = seed.map(|s| SplitMix(s ^ (rid as u64).wrapping_mul(0xA24B_AED4_963E_E407)));
+        let mut rng =
+            seed.map(|s| SplitMix64::new(s ^ (rid as u64).wrapping_mul(0xA24B_AED4_963E_E407)));
         let ts = &mut b.t[i * s_n..(i + 1) * s_n];
         let ds = &mut b.deltas[i * s_n..(i + 1) * s_n];
         place_samples(set, r, p, rng.as_mut(), ts, ds);
@@ -772,7 +817,7 @@ mod tests {
             sky_samples: 2,
             ..Default::default()
         };
-        let mut rng = SplitMix(7);
+        let mut rng = SplitMix64::new(7);
         let (mut t, mut d) = (vec![0.0; 8], vec![0.0; 8]);
         place_samples(&set, 0, &p, Some(&mut rng), &mut t, &mut d);
         // Union [4, 10] gets 6 strata of width 1; sky [10, 60] two of width 25.

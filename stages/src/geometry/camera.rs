@@ -3,7 +3,7 @@
 
 use glam::{DAffine3, DVec3};
 
-use super::Ray;
+use super::ray::Ray;
 
 /// A pinhole camera. Pixel `(x, y)` spans `[x, x+1) x [y, y+1)`, so its centre is at image
 /// point `(x + 0.5, y + 0.5)`.

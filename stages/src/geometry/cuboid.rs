@@ -4,7 +4,7 @@
 
 use glam::DVec3;
 
-use super::LocalInterval;
+use super::ray::LocalInterval;
 
 /// The interval of the whole line `o + t d` inside the cube (`None` if it misses or only touches
 /// an edge). A line parallel to a face and lying in its plane counts as inside (closed cube).

@@ -3,7 +3,7 @@
 
 use glam::DVec3;
 
-use super::LocalInterval;
+use super::ray::LocalInterval;
 
 /// The chord of the whole line `o + t d` through the sphere `|x| <= 0.5` (`None` if it misses
 /// or is tangent).

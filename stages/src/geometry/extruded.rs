@@ -10,7 +10,9 @@ use std::cell::RefCell;
 
 use glam::{DVec2, DVec3};
 
-use super::{Aabb, GeometryError, LocalInterval};
+use super::aabb::Aabb;
+use super::error::GeometryError;
+use super::ray::LocalInterval;
 
 thread_local! {
     /// Crossings of one ray: (t, 2D edge normal). Reused so intersecting allocates nothing.

@@ -20,7 +20,9 @@ use std::{
 
 use glam::DVec3;
 
-use super::{Aabb, GeometryError, LocalInterval};
+use super::aabb::Aabb;
+use super::error::GeometryError;
+use super::ray::LocalInterval;
 
 thread_local! {
     /// Crossings of one ray: (t, +1/-1, face normal). Reused so intersecting allocates nothing.

@@ -1,21 +1,25 @@
 //! Every stage kind, by name. The runner knows stages only through this.
 
+use super::{
+    aggregate, evaluate, intersect, kitti360_scene, render, report, stereo_depth, synthetic_scene,
+    testing, train,
+};
 use crate::stage::Stage;
 
 /// Every stage kind, by name.
 pub fn registry() -> Vec<Box<dyn Stage>> {
     let mut all: Vec<Box<dyn Stage>> = vec![
-        Box::new(crate::scene::SyntheticScene),
-        Box::new(crate::scene::kitti360::Kitti360Scene),
-        Box::new(crate::stereo::StereoDepth),
-        Box::new(crate::rays::Intersect),
-        Box::new(crate::train_stage::Train),
-        Box::new(crate::render::Render),
-        Box::new(crate::evaluate::Evaluate),
-        Box::new(crate::report::Report),
-        Box::new(crate::aggregate::Aggregate),
+        Box::new(synthetic_scene::SyntheticScene),
+        Box::new(kitti360_scene::Kitti360Scene),
+        Box::new(stereo_depth::StereoDepth),
+        Box::new(intersect::Intersect),
+        Box::new(train::Train),
+        Box::new(render::Render),
+        Box::new(evaluate::Evaluate),
+        Box::new(report::Report),
+        Box::new(aggregate::Aggregate),
     ];
-    all.extend(crate::testing::kinds());
+    all.extend(testing::kinds());
     all
 }
 

@@ -3,7 +3,7 @@
 
 use std::fmt;
 
-use super::{check_len, class_index, MetricError};
+use super::error::{check_len, class_index, MetricError};
 use crate::labels;
 
 /// Confusion matrix of ground truth (rows) against prediction (columns) over a class list.

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 
 use rayon::prelude::*;
 
-use super::{check_len, MetricError};
+use super::error::{check_len, MetricError};
 
 /// Pinhole intrinsics in pixels. Camera axes: x right, y down, z forward; the centre of pixel
 /// `(x, y)` is at `(x + 0.5, y + 0.5)`.

@@ -1,7 +1,7 @@
 //! Depth accuracy against LiDAR: RMSE and delta < 1.25, accumulated over frames as sums and
 //! counts.
 
-use super::{check_len, MetricError};
+use super::error::{check_len, MetricError};
 
 /// Sums over frames for depth RMSE and delta < 1.25.
 ///

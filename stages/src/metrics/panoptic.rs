@@ -30,9 +30,8 @@ use std::{
     fmt,
 };
 
-use super::{
-    check_len, class_index, confusion::mean, instance_number, ConfusionMatrix, MetricError,
-};
+use super::confusion::{mean, ConfusionMatrix};
+use super::error::{check_len, class_index, instance_number, MetricError};
 use crate::labels::{self, INSTANCE_FACTOR};
 
 /// Settings of the panoptic evaluation. The default is the paper's.

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use arrow::datatypes::UInt8Type;
 
-use super::kitti360_export::{image_keys, table, write_png};
+use super::io::{image_keys, table, write_png};
 use crate::geometry::{cameras_from_table, primitives_from_table, Bvh};
 use crate::labels::{self, SKY};
 use crate::{tables, Result, Tables};

@@ -8,7 +8,14 @@ const BINS: usize = 16;
 /// Cost of visiting a node relative to one primitive test.
 const TRAVERSAL_COST: f64 = 1.0;
 
-pub(super) fn build(prims: &[Primitive]) -> Bvh {
+impl Bvh {
+    /// Builds over `prims`.
+    pub fn build(prims: &[Primitive]) -> Bvh {
+        build(prims)
+    }
+}
+
+fn build(prims: &[Primitive]) -> Bvh {
     let boxes: Vec<Aabb> = prims.iter().map(|p| p.aabb()).collect();
     let mut order: Vec<u32> = (0..prims.len() as u32).collect();
     let mut nodes = Vec::with_capacity(2 * prims.len().max(1));

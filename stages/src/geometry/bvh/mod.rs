@@ -12,7 +12,7 @@ mod build;
 mod traverse;
 mod validate;
 
-use super::{Aabb, Primitive};
+use super::Aabb;
 
 /// Maximum primitives in a leaf the builder aims for (SAH may stop earlier).
 const LEAF_TARGET: usize = 4;
@@ -60,10 +60,5 @@ impl Bvh {
         } else {
             go(self, 0)
         }
-    }
-
-    /// Builds over `prims` (see `build.rs`).
-    pub fn build(prims: &[Primitive]) -> Bvh {
-        build::build(prims)
     }
 }

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::{cameras_to_table, primitives_to_table, Camera, CameraRow, Primitive, Shape};
 use crate::labels::{self, SKY};
-use crate::{tables, InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::{tables, Progress, Result, StageError, Tables};
 
 use parse::err;
 
@@ -190,6 +190,46 @@ impl Kitti360Params {
         } else {
             self.eval_frames.contains(&frame)
         }
+    }
+
+    /// Checks the parameters; errors name them.
+    pub fn validate(&self) -> Result<()> {
+        let p = self;
+        let bad = |m: String| Err(StageError::Params(m));
+        if p.root.is_empty() {
+            return bad("`root` must name the KITTI-360 directory".into());
+        }
+        if p.sequence.is_empty() || p.sequence.contains(['/', '\\']) {
+            return bad(format!(
+                "`sequence` must be a plain directory name, got `{}`",
+                p.sequence
+            ));
+        }
+        if p.frames.is_empty() && p.first_frame > p.last_frame {
+            return bad(format!(
+                "`first_frame` {} is after `last_frame` {}",
+                p.first_frame, p.last_frame
+            ));
+        }
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
+            return bad("`cameras` must list 0 and/or 1".into());
+        }
+        let mut c = p.cameras.clone();
+        c.sort_unstable();
+        c.dedup();
+        if c != p.cameras {
+            return bad("`cameras` must be ascending without repeats, e.g. [0, 1]".into());
+        }
+        if !(p.max_distance_m.is_finite() && p.max_distance_m > 0.0) {
+            return bad(format!(
+                "`max_distance_m` must be positive, got {}",
+                p.max_distance_m
+            ));
+        }
+        if p.origin.is_some_and(|o| o.iter().any(|v| !v.is_finite())) {
+            return bad("`origin` must be finite".into());
+        }
+        Ok(())
     }
 }
 
@@ -632,81 +672,6 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     );
     progress.update(4, 4, "tables");
     Ok(t)
-}
-
-/// The KITTI-360 loader kind.
-pub struct Kitti360Scene;
-
-impl TypedStage for Kitti360Scene {
-    type Params = Kitti360Params;
-    const KIND: &'static str = "kitti360_scene";
-    const VERSION: u32 = 1;
-    const DESCRIPTION: &'static str =
-        "a KITTI-360 sequence (or data in its layout): posed stereo images, 3D bounding \
-         primitives near the chosen frames, pseudo labels, optional stereo depth, GT and LiDAR";
-    const INPUTS: &'static [InputSlot] = &[];
-    const OUTPUTS: &'static [&'static str] = &[
-        "scene_info",
-        "cameras",
-        "primitives",
-        "images",
-        "pseudo_labels",
-        "stereo_depth",
-        "lidar_depth",
-        "gt_semantic",
-        "gt_instance",
-        "gt_depth",
-    ];
-
-    fn validate(p: &Kitti360Params) -> Result<()> {
-        let bad = |m: String| Err(StageError::Params(m));
-        if p.root.is_empty() {
-            return bad("`root` must name the KITTI-360 directory".into());
-        }
-        if p.sequence.is_empty() || p.sequence.contains(['/', '\\']) {
-            return bad(format!(
-                "`sequence` must be a plain directory name, got `{}`",
-                p.sequence
-            ));
-        }
-        if p.frames.is_empty() && p.first_frame > p.last_frame {
-            return bad(format!(
-                "`first_frame` {} is after `last_frame` {}",
-                p.first_frame, p.last_frame
-            ));
-        }
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
-            return bad("`cameras` must list 0 and/or 1".into());
-        }
-        let mut c = p.cameras.clone();
-        c.sort_unstable();
-        c.dedup();
-        if c != p.cameras {
-            return bad("`cameras` must be ascending without repeats, e.g. [0, 1]".into());
-        }
-        if !(p.max_distance_m.is_finite() && p.max_distance_m > 0.0) {
-            return bad(format!(
-                "`max_distance_m` must be positive, got {}",
-                p.max_distance_m
-            ));
-        }
-        if p.origin.is_some_and(|o| o.iter().any(|v| !v.is_finite())) {
-            return bad("`origin` must be finite".into());
-        }
-        Ok(())
-    }
-
-    fn run(&self, p: &Kitti360Params, _: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        load(p, progress)
-    }
-
-    fn external_inputs(&self, p: &Kitti360Params) -> Result<Vec<PathBuf>> {
-        input_files(p)
-    }
-
-    fn export(&self, _: &Kitti360Params, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        super::preview::write(t, &dir.join("previews"))
-    }
 }
 
 #[cfg(test)]

@@ -10,7 +10,10 @@ use arrow::datatypes::{Float64Type, UInt32Type, UInt8Type};
 use super::*;
 use crate::geometry::{cameras_from_table, primitives_from_table};
 use crate::scene::kitti360_export::{self, LIDAR_DEPTH_TOLERANCE, STEREO_DEPTH_TOLERANCE_M};
-use crate::scene::{SceneParams, SyntheticScene};
+use crate::kinds::kitti360_scene::Kitti360Scene;
+use crate::kinds::synthetic_scene::SyntheticScene;
+use crate::Inputs;
+use crate::scene::synthetic::SceneParams;
 use crate::{NoProgress, Stage};
 
 fn repo() -> PathBuf {
@@ -455,7 +458,7 @@ fn lidar_scans_project_into_the_left_camera() {
 fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
     let sp = SceneParams::default();
     let synth =
-        crate::scene::to_tables(&sp, &crate::scene::generate(&sp, &NoProgress).unwrap()).unwrap();
+        crate::scene::synthetic::to_tables(&sp, &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap()).unwrap();
     let root = temp(&format!("roundtrip-{tag}"));
     kitti360_export::write(&synth, &root).unwrap();
     let p = Kitti360Params {
@@ -486,7 +489,7 @@ fn the_exported_synthetic_scene_loads_back_into_equal_tables() {
     for name in ["images", "pseudo_labels", "gt_semantic", "gt_instance"] {
         assert_eq!(a[name], b[name], "table {name} differs");
     }
-    let si = |t: &Tables| kitti360_export::scene_info(t).unwrap();
+    let si = |t: &Tables| crate::scene::io::scene_info(t).unwrap();
     let (ia, ib) = (si(&a), si(&b));
     assert_eq!((ia.name, ia.sequence), (ib.name, ib.sequence));
     assert_eq!(ia.origin, ib.origin);
@@ -594,7 +597,7 @@ fn the_exported_synthetic_scene_loads_back_into_equal_tables() {
 fn the_intersect_stage_gives_the_same_first_primitive_labels_on_the_round_trip() {
     let (a, b) = round_trip("rays", 1.0e6);
     let rays = |t: &Tables| {
-        let s = crate::rays::Intersect;
+        let s = crate::kinds::intersect::Intersect;
         let v = Stage::canonical_params(&s, &serde_json::json!({})).unwrap();
         let mut slots = std::collections::BTreeMap::new();
         slots.insert("scene".to_string(), t);

@@ -1,0 +1,573 @@
+//! The `evaluate` stage kind: semantic, panoptic, multi-view-consistency and depth metrics of
+//! the rendered labels on the evaluation frames, next to the same metrics for the baselines
+//! (the pseudo labels themselves, the class of the first primitive each ray hits, and the
+//! argmax of the fixed-field rendering), all against the scene's ground truth.
+
+use std::{
+    collections::{BTreeMap, HashMap},
+    path::{Path, PathBuf},
+    sync::Arc,
+};
+
+use arrow::{
+    array::{Array, ArrayRef, Float64Array},
+    datatypes::{Float32Type, UInt16Type, UInt32Type, UInt64Type, UInt8Type},
+    record_batch::RecordBatch,
+};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::scores::{METHODS, SCORES};
+use crate::{
+    geometry::{self, Bvh, CameraRow, Primitive},
+    labels,
+    metrics::{
+        multiview_consistency, ConfusionMatrix, Consistency, DepthAccumulator, LabelledView,
+        PanopticAccumulator, PanopticConfig, Pinhole,
+    },
+    tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Tables, TypedStage,
+};
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvaluateParams {
+    /// Cameras evaluated (0 = left, 1 = right); KITTI-360 has GT for the left camera only.
+    pub cameras: Vec<u8>,
+    /// Evaluated classes (label ids); default: the paper's 14 classes.
+    pub classes: Vec<u8>,
+    /// Thing classes for PQ; default: building, car, caravan, trailer, box.
+    pub things: Vec<u8>,
+    /// GT segments under this many pixels are void; predicted ones are relabelled sky.
+    pub min_segment_px: usize,
+    /// Matching distance of LiDAR points for multi-view consistency, metres.
+    pub mc_distance: f64,
+    /// Depth metrics use LiDAR pixels closer than this, metres.
+    pub max_depth: f64,
+}
+
+impl Default for EvaluateParams {
+    fn default() -> Self {
+        Self {
+            cameras: vec![0],
+            classes: labels::PAPER_CLASSES.to_vec(),
+            things: labels::PAPER_THINGS.to_vec(),
+            min_segment_px: 100,
+            mc_distance: 0.1,
+            max_depth: 100.0,
+        }
+    }
+}
+
+pub struct Evaluate;
+
+/// One image's maps, keyed by (frame, camera).
+struct Image<'a> {
+    width: usize,
+    height: usize,
+    row: usize,
+    batch: &'a RecordBatch,
+}
+
+fn index_images<'a>(batch: &'a RecordBatch, table: &str) -> Result<HashMap<(u32, u8), Image<'a>>> {
+    let frames = tables::get_prim::<UInt32Type>(batch, table, "frame")?;
+    let cams = tables::get_prim::<UInt8Type>(batch, table, "camera")?;
+    let w = tables::get_prim::<UInt32Type>(batch, table, "width")?;
+    let h = tables::get_prim::<UInt32Type>(batch, table, "height")?;
+    Ok((0..batch.num_rows())
+        .map(|r| {
+            (
+                (frames[r], cams[r]),
+                Image {
+                    width: w[r] as usize,
+                    height: h[r] as usize,
+                    row: r,
+                    batch,
+                },
+            )
+        })
+        .collect())
+}
+
+fn map_u8<'a>(img: &Image<'a>, table: &str, col: &str) -> Result<&'a [u8]> {
+    let v = tables::get_list::<UInt8Type>(img.batch, table, col)?.row(img.row);
+    check_size(v.len(), img, table, col)?;
+    Ok(v)
+}
+
+fn map_u16<'a>(img: &Image<'a>, table: &str, col: &str) -> Result<&'a [u16]> {
+    let v = tables::get_list::<UInt16Type>(img.batch, table, col)?.row(img.row);
+    check_size(v.len(), img, table, col)?;
+    Ok(v)
+}
+
+fn map_f32<'a>(img: &Image<'a>, table: &str, col: &str) -> Result<&'a [f32]> {
+    let v = tables::get_list::<Float32Type>(img.batch, table, col)?.row(img.row);
+    check_size(v.len(), img, table, col)?;
+    Ok(v)
+}
+
+fn check_size(len: usize, img: &Image, table: &str, col: &str) -> Result<()> {
+    if len != img.width * img.height {
+        return Err(StageError::Input(format!(
+            "table `{table}` row {} column `{col}` has {len} values, expected {}x{}",
+            img.row, img.width, img.height
+        )));
+    }
+    Ok(())
+}
+
+/// Label and panoptic maps of "the first primitive each ray hits" (sky where none is hit).
+pub fn first_primitive_maps(
+    cam: &geometry::Camera,
+    prims: &[Primitive],
+    bvh: &Bvh,
+) -> (Vec<u8>, Vec<u16>) {
+    let n = (cam.width * cam.height) as usize;
+    let mut sem = vec![labels::SKY; n];
+    let mut inst = vec![labels::SKY as u16 * labels::INSTANCE_FACTOR as u16; n];
+    sem.par_iter_mut()
+        .zip(inst.par_iter_mut())
+        .enumerate()
+        .for_each(|(i, (s, ins))| {
+            let (x, y) = ((i as u32) % cam.width, (i as u32) / cam.width);
+            if let Some(hit) = bvh.first_hit(prims, &cam.pixel_ray(x, y), 0.0, f64::INFINITY) {
+                let p = &prims[hit.prim as usize];
+                *s = p.label;
+                *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;
+            }
+        });
+    (sem, inst)
+}
+
+fn view<'a>(c: &CameraRow, labels: &'a [u8], depth: &'a [f32]) -> LabelledView<'a> {
+    LabelledView {
+        width: c.cam.width as usize,
+        height: c.cam.height as usize,
+        labels,
+        depth,
+        intrinsics: Pinhole {
+            fx: c.cam.fx,
+            fy: c.cam.fy,
+            cx: c.cam.cx,
+            cy: c.cam.cy,
+        },
+        cam_to_world: geometry::io::affine_to_row_major(&c.cam.cam_to_world),
+    }
+}
+
+/// Columns of the `eval_gt` table.
+#[derive(Default)]
+struct GtRows {
+    frame: Vec<u32>,
+    camera: Vec<u8>,
+    width: Vec<u32>,
+    height: Vec<u32>,
+    semantic: Vec<Vec<u8>>,
+    instance: Vec<Vec<u16>>,
+}
+
+/// Columns of the `class_iou` table.
+#[derive(Default)]
+struct ClassRows {
+    method: Vec<String>,
+    label: Vec<u8>,
+    name: Vec<String>,
+    iou: Vec<Option<f64>>,
+    tp: Vec<u64>,
+    fp: Vec<u64>,
+    fn_: Vec<u64>,
+}
+
+/// Accumulators of one method.
+struct MethodSums {
+    confusion: ConfusionMatrix,
+    panoptic: Option<PanopticAccumulator>,
+    depth: Option<DepthAccumulator>,
+    mc: Option<Consistency>,
+}
+
+impl TypedStage for Evaluate {
+    type Params = EvaluateParams;
+    const KIND: &'static str = "evaluate";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str =
+        "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
+    const INPUTS: &'static [InputSlot] = &[
+        InputSlot {
+            name: "scene",
+            tables: &[
+                "scene_info",
+                "cameras",
+                "primitives",
+                "gt_semantic",
+                "gt_instance",
+                "pseudo_labels",
+                "lidar_depth",
+            ],
+            optional: false,
+            doc: "the scene with its ground truth",
+        },
+        InputSlot {
+            name: "render",
+            tables: &["label_maps"],
+            optional: false,
+            doc: "rendered labels",
+        },
+    ];
+    const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
+    const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt"];
+
+    fn validate(p: &EvaluateParams) -> Result<()> {
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
+            return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));
+        }
+        if p.classes.is_empty() {
+            return Err(StageError::Params("`classes` is empty".into()));
+        }
+        for &c in p.classes.iter().chain(&p.things) {
+            if c == 0 || labels::by_id(c).is_none() {
+                return Err(StageError::Params(format!(
+                    "`classes`: unknown label id {c}"
+                )));
+            }
+        }
+        if let Some(t) = p.things.iter().find(|t| !p.classes.contains(t)) {
+            return Err(StageError::Params(format!(
+                "`things`: {t} is not in `classes`"
+            )));
+        }
+        if !(p.mc_distance > 0.0 && p.max_depth > 0.0) {
+            return Err(StageError::Params(
+                "`mc_distance` and `max_depth` must be positive".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &EvaluateParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let cameras = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+        let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+        let bvh = Bvh::build(&prims);
+        let gt_sem_t = inputs.table("scene", "gt_semantic")?;
+        let gt_inst_t = inputs.table("scene", "gt_instance")?;
+        let pseudo_t = inputs.table("scene", "pseudo_labels")?;
+        let lidar_t = inputs.table("scene", "lidar_depth")?;
+        let maps_t = inputs.table("render", "label_maps")?;
+        let gt_sem = index_images(gt_sem_t, "gt_semantic")?;
+        let gt_inst = index_images(gt_inst_t, "gt_instance")?;
+        let pseudo = index_images(pseudo_t, "pseudo_labels")?;
+        let lidar = index_images(lidar_t, "lidar_depth")?;
+        let maps = index_images(maps_t, "label_maps")?;
+
+        let pan_cfg = PanopticConfig {
+            classes: p.classes.clone(),
+            things: p.things.clone(),
+            min_gt_segment_px: p.min_segment_px,
+            min_pred_segment_px: Some(p.min_segment_px),
+            sky_id: labels::SKY,
+        };
+        let new_sums = |panoptic: bool, depth: bool| -> Result<MethodSums> {
+            Ok(MethodSums {
+                confusion: ConfusionMatrix::new(&p.classes)?,
+                panoptic: if panoptic {
+                    Some(PanopticAccumulator::new(pan_cfg.clone())?)
+                } else {
+                    None
+                },
+                depth: if depth {
+                    Some(DepthAccumulator::new(p.max_depth)?)
+                } else {
+                    None
+                },
+                mc: Some(Consistency::default()),
+            })
+        };
+        let mut sums: BTreeMap<&str, MethodSums> = BTreeMap::new();
+        sums.insert("panoptic_nerf", new_sums(true, true)?);
+        sums.insert("fixed_field", new_sums(false, false)?);
+        sums.insert("pseudo_labels", new_sums(false, false)?);
+        sums.insert("first_primitive", new_sums(true, false)?);
+
+        let mut eval: Vec<&CameraRow> = cameras
+            .iter()
+            .filter(|c| c.eval && p.cameras.contains(&c.camera))
+            .collect();
+        eval.sort_by_key(|c| (c.camera, c.frame));
+        if eval.is_empty() {
+            return Err(StageError::Input(
+                "the scene has no evaluation frames for the evaluated cameras (cameras.eval)"
+                    .into(),
+            ));
+        }
+        let missing = |what: &str, c: &CameraRow| {
+            StageError::Input(format!(
+                "no `{what}` row for frame {} camera {}",
+                c.frame, c.camera
+            ))
+        };
+        // Label maps per method per evaluated image, kept for multi-view consistency.
+        let mut labels_of: BTreeMap<(&str, u32, u8), Vec<u8>> = BTreeMap::new();
+        let mut pseudo_frames = 0;
+        let mut gt_rows = GtRows::default();
+        for (n, c) in eval.iter().enumerate() {
+            progress.update(n as u64, eval.len() as u64, "evaluating");
+            let key = (c.frame, c.camera);
+            let g = gt_sem.get(&key).ok_or_else(|| missing("gt_semantic", c))?;
+            let gi = gt_inst.get(&key).ok_or_else(|| missing("gt_instance", c))?;
+            let m = maps.get(&key).ok_or_else(|| missing("label_maps", c))?;
+            if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
+                || (m.width, m.height) != (g.width, g.height)
+            {
+                return Err(StageError::Input(format!(
+                    "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
+                    c.frame, c.camera
+                )));
+            }
+            let gsem = map_u8(g, "gt_semantic", "labels")?;
+            let ginst = map_u16(gi, "gt_instance", "instances")?;
+            let ours = map_u8(m, "label_maps", "semantic")?;
+            let ours_inst = map_u16(m, "label_maps", "instance")?;
+            let fixed = map_u8(m, "label_maps", "fixed_semantic")?;
+            let depth = map_f32(m, "label_maps", "depth")?;
+            let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, &prims, &bvh);
+            gt_rows.frame.push(c.frame);
+            gt_rows.camera.push(c.camera);
+            gt_rows.width.push(g.width as u32);
+            gt_rows.height.push(g.height as u32);
+            gt_rows.semantic.push(gsem.to_vec());
+            gt_rows.instance.push(ginst.to_vec());
+
+            let s = sums.get_mut("panoptic_nerf").unwrap();
+            s.confusion.add(gsem, ours)?;
+            s.panoptic
+                .as_mut()
+                .unwrap()
+                .add_frame(gsem, ginst, ours, ours_inst)?;
+            if let Some(l) = lidar.get(&key) {
+                s.depth
+                    .as_mut()
+                    .unwrap()
+                    .add(depth, map_f32(l, "lidar_depth", "depth")?)?;
+            }
+            labels_of.insert(("panoptic_nerf", c.frame, c.camera), ours.to_vec());
+
+            sums.get_mut("fixed_field")
+                .unwrap()
+                .confusion
+                .add(gsem, fixed)?;
+            labels_of.insert(("fixed_field", c.frame, c.camera), fixed.to_vec());
+
+            let s = sums.get_mut("first_primitive").unwrap();
+            s.confusion.add(gsem, &fp_sem)?;
+            s.panoptic
+                .as_mut()
+                .unwrap()
+                .add_frame(gsem, ginst, &fp_sem, &fp_inst)?;
+            labels_of.insert(("first_primitive", c.frame, c.camera), fp_sem);
+
+            if let Some(ps) = pseudo.get(&key) {
+                let ps = map_u8(ps, "pseudo_labels", "labels")?;
+                sums.get_mut("pseudo_labels")
+                    .unwrap()
+                    .confusion
+                    .add(gsem, ps)?;
+                labels_of.insert(("pseudo_labels", c.frame, c.camera), ps.to_vec());
+                pseudo_frames += 1;
+            }
+        }
+
+        // Multi-view consistency over consecutive evaluation frames of each camera.
+        for w in eval.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if a.camera != b.camera {
+                continue;
+            }
+            let (Some(la), Some(lb)) = (
+                lidar.get(&(a.frame, a.camera)),
+                lidar.get(&(b.frame, b.camera)),
+            ) else {
+                continue;
+            };
+            let (da, db) = (
+                map_f32(la, "lidar_depth", "depth")?,
+                map_f32(lb, "lidar_depth", "depth")?,
+            );
+            for &method in METHODS {
+                let (Some(ma), Some(mb)) = (
+                    labels_of.get(&(method, a.frame, a.camera)),
+                    labels_of.get(&(method, b.frame, b.camera)),
+                ) else {
+                    continue;
+                };
+                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), p.mc_distance)?;
+                sums.get_mut(method).unwrap().mc.as_mut().unwrap().merge(&c);
+            }
+        }
+
+        let mut method_col = Vec::new();
+        let mut metric_col = Vec::new();
+        let mut values: Vec<Option<f64>> = Vec::new();
+        let mut push = |m: &str, k: &str, v: Option<f64>| {
+            method_col.push(m.to_string());
+            metric_col.push(k.to_string());
+            values.push(v.filter(|x| x.is_finite()));
+        };
+        let mut ciou = ClassRows::default();
+        for &method in METHODS {
+            let s = &sums[method];
+            let frames = if method == "pseudo_labels" {
+                pseudo_frames
+            } else {
+                eval.len()
+            };
+            push(method, "frames", Some(frames as f64));
+            push(method, "pixels", Some(s.confusion.total() as f64));
+            push(method, "miou", s.confusion.miou());
+            push(method, "acc", s.confusion.accuracy());
+            let pan = s.panoptic.as_ref().map(|a| a.result());
+            let part =
+                |f: fn(&crate::metrics::PanopticResult) -> Option<crate::metrics::PqSummary>| {
+                    pan.as_ref().and_then(f)
+                };
+            for (prefix, summary) in [
+                ("", part(|r| r.all)),
+                ("_things", part(|r| r.things)),
+                ("_stuff", part(|r| r.stuff)),
+            ] {
+                push(method, &format!("pq{prefix}"), summary.map(|x| x.pq));
+                push(method, &format!("sq{prefix}"), summary.map(|x| x.sq));
+                push(method, &format!("rq{prefix}"), summary.map(|x| x.rq));
+            }
+            push(method, "pq_dagger", pan.as_ref().and_then(|r| r.pq_dagger));
+            push(method, "mc", s.mc.and_then(|c| c.value()));
+            let d = s.depth.as_ref().map(|d| d.result());
+            push(method, "depth_rmse", d.and_then(|d| d.rmse));
+            push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
+            for row in s.confusion.table() {
+                ciou.method.push(method.to_string());
+                ciou.label.push(row.class);
+                ciou.name
+                    .push(labels::by_id(row.class).map_or("?", |l| l.name).to_string());
+                ciou.iou.push(row.iou);
+                ciou.tp.push(row.tp);
+                ciou.fp.push(row.fp);
+                ciou.fn_.push(row.fn_);
+            }
+        }
+        let metrics = tables::build(
+            "metrics",
+            vec![
+                tables::strings(&method_col),
+                tables::strings(&metric_col),
+                Arc::new(Float64Array::from(values)) as ArrayRef,
+            ],
+        )?;
+        let class_iou = tables::build(
+            "class_iou",
+            vec![
+                tables::strings(&ciou.method),
+                tables::prim::<UInt8Type>(ciou.label),
+                tables::strings(&ciou.name),
+                Arc::new(Float64Array::from(ciou.iou)) as ArrayRef,
+                tables::prim::<UInt64Type>(ciou.tp),
+                tables::prim::<UInt64Type>(ciou.fp),
+                tables::prim::<UInt64Type>(ciou.fn_),
+            ],
+        )?;
+        let info = inputs.table("scene", "scene_info")?;
+        let sequence = tables::get_strings(info, "scene_info", "sequence")?;
+        if sequence.is_empty() {
+            return Err(StageError::Input("table `scene_info` is empty".into()));
+        }
+        let eval_gt = tables::build(
+            "eval_gt",
+            vec![
+                tables::strings(vec![sequence.value(0); gt_rows.frame.len()]),
+                tables::prim::<UInt32Type>(gt_rows.frame),
+                tables::prim::<UInt8Type>(gt_rows.camera),
+                tables::prim::<UInt32Type>(gt_rows.width),
+                tables::prim::<UInt32Type>(gt_rows.height),
+                tables::list::<UInt8Type>(gt_rows.semantic),
+                tables::list::<UInt16Type>(gt_rows.instance),
+            ],
+        )?;
+        Ok(Tables::from([
+            ("metrics".to_string(), metrics),
+            ("class_iou".to_string(), class_iou),
+            ("eval_gt".to_string(), eval_gt),
+        ]))
+    }
+
+    fn export(&self, _: &EvaluateParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+        let json = metrics_json(t)?;
+        let path = dir.join("metrics.json");
+        std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
+            .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
+        let mut files = vec![path];
+        let gt = &t["eval_gt"];
+        let seq = tables::get_strings(gt, "eval_gt", "sequence")?;
+        let frames = tables::get_prim::<UInt32Type>(gt, "eval_gt", "frame")?;
+        let cams = tables::get_prim::<UInt8Type>(gt, "eval_gt", "camera")?;
+        let w = tables::get_prim::<UInt32Type>(gt, "eval_gt", "width")?;
+        let h = tables::get_prim::<UInt32Type>(gt, "eval_gt", "height")?;
+        let sem = tables::get_list::<UInt8Type>(gt, "eval_gt", "semantic")?;
+        let inst = tables::get_list::<UInt16Type>(gt, "eval_gt", "instance")?;
+        for r in 0..gt.num_rows() {
+            let name = crate::pngio::label_file_name(seq.value(r), frames[r], cams[r]);
+            let s = dir.join("gt/semantic").join(&name);
+            crate::pngio::write_gray8(&s, w[r], h[r], sem.row(r))?;
+            let i = dir.join("gt/instance").join(&name);
+            crate::pngio::write_gray16(&i, w[r], h[r], inst.row(r))?;
+            files.extend([s, i]);
+        }
+        Ok(files)
+    }
+}
+
+/// `{method: {metric: value, ..., "class_iou": {class name: iou}}}` from the stage's tables.
+pub fn metrics_json(t: &Tables) -> Result<serde_json::Value> {
+    let get = |name: &str| {
+        t.get(name)
+            .ok_or_else(|| StageError::Input(format!("evaluate output lacks table `{name}`")))
+    };
+    let m = get("metrics")?;
+    let methods = tables::get_strings(m, "metrics", "method")?;
+    let metrics = tables::get_strings(m, "metrics", "metric")?;
+    let values = m
+        .column_by_name("value")
+        .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+        .ok_or_else(|| StageError::Input("metrics.value is not float64".into()))?;
+    let mut out = serde_json::Map::new();
+    for i in 0..m.num_rows() {
+        let entry = out
+            .entry(methods.value(i).to_string())
+            .or_insert_with(|| serde_json::json!({}));
+        let v = if values.is_null(i) {
+            serde_json::Value::Null
+        } else {
+            serde_json::json!(values.value(i))
+        };
+        entry[metrics.value(i)] = v;
+    }
+    let c = get("class_iou")?;
+    let cm = tables::get_strings(c, "class_iou", "method")?;
+    let cn = tables::get_strings(c, "class_iou", "name")?;
+    let ci = c
+        .column_by_name("iou")
+        .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+        .ok_or_else(|| StageError::Input("class_iou.iou is not float64".into()))?;
+    for i in 0..c.num_rows() {
+        let entry = out
+            .entry(cm.value(i).to_string())
+            .or_insert_with(|| serde_json::json!({}));
+        if entry.get("class_iou").is_none() {
+            entry["class_iou"] = serde_json::json!({});
+        }
+        entry["class_iou"][cn.value(i)] = if ci.is_null(i) {
+            serde_json::Value::Null
+        } else {
+            serde_json::json!(ci.value(i))
+        };
+    }
+    Ok(serde_json::Value::Object(out))
+}

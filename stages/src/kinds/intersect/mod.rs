@@ -1,0 +1,103 @@
+//! The `intersect` kind: the sampling plan of Panoptic NeRF ([`crate::intervals`]) for every
+//! pixel of the selected images, and first-hit previews.
+
+use std::path::{Path, PathBuf};
+
+
+use crate::geometry::{self, Bvh, CameraRow};
+use crate::intervals::{first_hit_images, plan_image, plans_to_table, IntersectParams};
+use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+
+pub struct Intersect;
+
+impl TypedStage for Intersect {
+    type Params = IntersectParams;
+    const KIND: &'static str = "intersect";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str =
+        "ray-primitive intervals of every pixel (the first k per ray, plus a sky interval)";
+    const INPUTS: &'static [InputSlot] = &[InputSlot {
+        name: "scene",
+        tables: &["cameras", "primitives"],
+        optional: false,
+        doc: "posed cameras and 3D bounding primitives",
+    }];
+    const OUTPUTS: &'static [&'static str] = &["ray_intervals"];
+
+    fn validate(p: &IntersectParams) -> Result<()> {
+        if !(1..=255).contains(&p.k) {
+            return Err(StageError::Params(format!(
+                "`k` must be in 1..=255, got {}",
+                p.k
+            )));
+        }
+        if !(p.sky_interval.is_finite() && p.sky_interval > 0.0) {
+            return Err(StageError::Params(format!(
+                "`sky_interval` must be a positive number of metres, got {}",
+                p.sky_interval
+            )));
+        }
+        if !(p.far.is_finite() && p.far > 0.0) {
+            return Err(StageError::Params(format!(
+                "`far` must be a positive number of metres, got {}",
+                p.far
+            )));
+        }
+        if p.cameras.is_empty() {
+            return Err(StageError::Params(
+                "`cameras` must list at least one camera id (0 = left, 1 = right)".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &IntersectParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+        let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+        let rows: Vec<&CameraRow> = rows
+            .iter()
+            .filter(|r| p.cameras.contains(&r.camera))
+            .collect();
+        if rows.is_empty() {
+            return Err(StageError::Input(format!(
+                "no image of the `cameras` table has a camera id in {:?}",
+                p.cameras
+            )));
+        }
+        let bvh = Bvh::build(&prims);
+        let total = rows.len() as u64;
+        let mut images = Vec::with_capacity(rows.len());
+        for (i, row) in rows.into_iter().enumerate() {
+            progress.update(
+                i as u64,
+                total,
+                &format!("frame {} camera {}", row.frame, row.camera),
+            );
+            images.push((row, plan_image(&prims, &bvh, &row.cam, p)));
+        }
+        progress.update(total, total, "done");
+        let t = plans_to_table(p.k, &images)?;
+        Ok(Tables::from([("ray_intervals".to_string(), t)]))
+    }
+
+    fn export(&self, p: &IntersectParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+        let table = t
+            .get("ray_intervals")
+            .ok_or_else(|| StageError::Input("missing table `ray_intervals`".into()))?;
+        let out_dir = dir.join("first_hit");
+        std::fs::create_dir_all(&out_dir)
+            .map_err(|e| StageError::Failed(format!("creating {}: {e}", out_dir.display())))?;
+        let mut written = Vec::new();
+        for img in first_hit_images(table, p.far)? {
+            let path = out_dir.join(format!("{:010}_{}.png", img.frame, img.camera));
+            img.image
+                .save(&path)
+                .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,224 @@
+//! Tests of the `intersect` stage on a hand-made scene with exact answers, its schema, params
+//! and export.
+
+use std::collections::BTreeMap;
+
+use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
+use glam::{DAffine3, DMat3, DQuat, DVec3};
+
+use arrow::record_batch::RecordBatch;
+
+use super::*;
+use crate::geometry::{cameras_to_table, primitives_to_table, Camera, Primitive, Shape};
+use crate::{labels, schema, tables, NoProgress, Stage};
+
+/// Camera at the origin looking along world +x (camera x = world -y, y = world -z), 3x3 pixels,
+/// f = 5 so the side pixels look 0.2 rad off axis. A cuboid occupying x in [4, 6], y in
+/// [-0.5, 0.5], z in [-5, 5] and a sphere of radius 1 centred at (10, 0, 0): the centre pixel
+/// crosses both; the side columns miss everything; the centre column's top and bottom pixels
+/// cross only the cuboid.
+fn scene(camera: u8) -> Tables {
+    let prims = vec![
+        Primitive::new(
+            Shape::Cuboid,
+            DAffine3::from_scale_rotation_translation(
+                DVec3::new(2.0, 1.0, 10.0),
+                DQuat::IDENTITY,
+                DVec3::new(5.0, 0.0, 0.0),
+            ),
+            labels::CAR,
+            3,
+        )
+        .unwrap(),
+        Primitive::new(
+            Shape::Ellipsoid,
+            DAffine3::from_scale_rotation_translation(
+                DVec3::splat(2.0),
+                DQuat::IDENTITY,
+                DVec3::new(10.0, 0.0, 0.0),
+            ),
+            labels::VEGETATION,
+            0,
+        )
+        .unwrap(),
+    ];
+    let cam = Camera {
+        width: 3,
+        height: 3,
+        fx: 5.0,
+        fy: 5.0,
+        cx: 1.5,
+        cy: 1.5,
+        cam_to_world: DAffine3::from_mat3(DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X)),
+    };
+    let rows = vec![CameraRow {
+        frame: 7,
+        camera,
+        eval: true,
+        cam,
+    }];
+    Tables::from([
+        ("cameras".to_string(), cameras_to_table(&rows).unwrap()),
+        (
+            "primitives".to_string(),
+            primitives_to_table(&prims).unwrap(),
+        ),
+    ])
+}
+
+fn run(params: &IntersectParams, scene: &Tables) -> Result<RecordBatch> {
+    let inputs = Inputs::new(BTreeMap::from([("scene".to_string(), scene)]));
+    let mut out = TypedStage::run(&Intersect, params, &inputs, &NoProgress)?;
+    Ok(out.remove("ray_intervals").unwrap())
+}
+
+fn close(a: &[f32], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (*x as f64 - y).abs() < 1e-5)
+}
+
+#[test]
+fn exact_intervals_on_a_tiny_scene() {
+    let t = run(&IntersectParams::default(), &scene(0)).unwrap();
+    assert_eq!(t.num_rows(), 1);
+    let row = |c: &str| {
+        tables::get_list::<Float32Type>(&t, "ray_intervals", c)
+            .unwrap()
+            .row(0)
+    };
+    let hits = tables::get_list::<UInt8Type>(&t, "ray_intervals", "hits").unwrap();
+    let prim = tables::get_list::<UInt32Type>(&t, "ray_intervals", "prim").unwrap();
+    // Side columns look 0.2 rad sideways and pass beside the 1 m wide cuboid.
+    assert_eq!(hits.row(0), &[0, 1, 0, 0, 2, 0, 0, 1, 0]);
+    // Top and bottom centre pixels: the cuboid's x-slab [4, 6] at t = x / dir.x.
+    let e = (1.0f64 + 0.04).sqrt();
+    assert!(
+        close(row("t_in"), &[4.0 * e, 4.0, 9.0, 4.0 * e]),
+        "{:?}",
+        row("t_in")
+    );
+    assert!(
+        close(row("t_out"), &[6.0 * e, 6.0, 11.0, 6.0 * e]),
+        "{:?}",
+        row("t_out")
+    );
+    assert_eq!(prim.row(0), &[0, 0, 1, 0]);
+    let sky0 = [0.0, 6.0 * e, 0.0, 0.0, 11.0, 0.0, 0.0, 6.0 * e, 0.0];
+    let sky1 = sky0.map(|v| if v == 0.0 { 0.0 } else { v + 50.0 });
+    assert!(close(row("sky_t0"), &sky0), "{:?}", row("sky_t0"));
+    assert!(close(row("sky_t1"), &sky1), "{:?}", row("sky_t1"));
+    let first = tables::get_list::<UInt8Type>(&t, "ray_intervals", "first_label").unwrap();
+    assert_eq!(first.row(0)[3], labels::SKY);
+    assert_eq!(first.row(0)[4], labels::CAR);
+    let inst = tables::get_list::<UInt32Type>(&t, "ray_intervals", "first_instance").unwrap();
+    assert_eq!(inst.row(0)[4], 3);
+}
+
+#[test]
+fn k_and_far_limit_the_intervals() {
+    // k = 1: the centre pixel keeps only the cuboid, and its sky interval is empty.
+    let p = IntersectParams {
+        k: 1,
+        ..Default::default()
+    };
+    let t = run(&p, &scene(0)).unwrap();
+    let hits = tables::get_list::<UInt8Type>(&t, "ray_intervals", "hits").unwrap();
+    assert_eq!(hits.row(0)[4], 1);
+    let s0 = tables::get_list::<Float32Type>(&t, "ray_intervals", "sky_t0").unwrap();
+    let s1 = tables::get_list::<Float32Type>(&t, "ray_intervals", "sky_t1").unwrap();
+    assert_eq!((s0.row(0)[4], s1.row(0)[4]), (6.0, 6.0));
+    // far = 10: the sphere's interval is clipped to [9, 10].
+    let p = IntersectParams {
+        far: 10.0,
+        ..Default::default()
+    };
+    let t = run(&p, &scene(0)).unwrap();
+    let t_out = tables::get_list::<Float32Type>(&t, "ray_intervals", "t_out").unwrap();
+    assert_eq!(t_out.row(0)[2], 10.0);
+}
+
+#[test]
+fn camera_selection_and_bad_params() {
+    let e = run(
+        &IntersectParams {
+            cameras: vec![0],
+            ..Default::default()
+        },
+        &scene(1),
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("camera id in [0]"), "{e}");
+    let stage: &dyn Stage = &Intersect;
+    for (bad, what) in [
+        (serde_json::json!({"k": 0}), "`k`"),
+        (serde_json::json!({"k": 300}), "`k`"),
+        (serde_json::json!({"sky_interval": -1.0}), "`sky_interval`"),
+        (serde_json::json!({"far": 0.0}), "`far`"),
+        (serde_json::json!({"cameras": []}), "`cameras`"),
+        (serde_json::json!({"kk": 3}), "unknown field"),
+    ] {
+        let e = stage.canonical_params(&bad).unwrap_err().to_string();
+        assert!(e.contains(what), "{bad}: {e}");
+    }
+    assert_eq!(
+        stage.canonical_params(&serde_json::json!({})).unwrap(),
+        serde_json::to_value(IntersectParams::default()).unwrap()
+    );
+}
+
+#[test]
+fn output_matches_its_schema_file() {
+    let t = run(&IntersectParams::default(), &scene(0)).unwrap();
+    schema::check("ray_intervals", t.schema().as_ref()).unwrap();
+    assert_eq!(t.schema(), schema::get("ray_intervals").unwrap());
+    assert!(crate::find("intersect").is_some());
+}
+
+#[test]
+fn ragged_intervals_agree_with_the_bvh_on_the_street_scene() {
+    let (prims, cam) = geometry::demo::street_scene(48, 16);
+    let p = IntersectParams::default();
+    let bvh = Bvh::build(&prims);
+    let plan = plan_image(&prims, &bvh, &cam, &p);
+    assert_eq!(plan.hits.len(), 48 * 16);
+    assert_eq!(
+        plan.t_in.len(),
+        plan.hits.iter().map(|&h| h as usize).sum::<usize>()
+    );
+    let mut off = 0;
+    let mut hits = Vec::new();
+    for y in 0..16 {
+        for x in 0..48 {
+            let i = (y * 48 + x) as usize;
+            bvh.intersect_all(&prims, &cam.pixel_ray(x, y), 0.0, p.far, &mut hits);
+            let n = hits.len().min(10);
+            assert_eq!(plan.hits[i] as usize, n);
+            for (j, h) in hits[..n].iter().enumerate() {
+                assert_eq!(
+                    (plan.prim[off + j], plan.t_in[off + j]),
+                    (h.prim, h.t_in as f32)
+                );
+            }
+            off += n;
+        }
+    }
+    // Looking down the street, most pixels see something, and the top rows see sky.
+    assert!(plan.hits.iter().filter(|&&h| h > 0).count() > 48 * 8);
+    assert!(plan.hits[..48].contains(&0));
+}
+
+#[test]
+fn export_writes_one_png_per_image() {
+    let t = run(&IntersectParams::default(), &scene(0)).unwrap();
+    let dir = std::env::temp_dir().join(format!("geom-export-{}", std::process::id()));
+    let tables = Tables::from([("ray_intervals".to_string(), t)]);
+    let files = TypedStage::export(&Intersect, &IntersectParams::default(), &tables, &dir).unwrap();
+    assert_eq!(files, vec![dir.join("first_hit/0000000007_0.png")]);
+    let img = image::open(&files[0]).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (3, 3));
+    // Middle row's side pixels are sky; the centre is the (shaded) car colour, bluish.
+    let sky = labels::color(labels::SKY).map(|v| ((v as f64 * 0.85 + 38.0).round()) as u8);
+    assert_eq!(img.get_pixel(0, 1).0, sky);
+    let c = img.get_pixel(1, 1).0;
+    assert!(c[2] > c[0] && c[2] > c[1], "{c:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,412 @@
+//! The `report` stage kind: a self-contained HTML page (pictures and plots embedded) and a
+//! Markdown summary of one run: the metrics table in the paper's form (methods x metrics), the
+//! per-class IoU, the training curves, and per evaluation frame a row of pictures:
+//! RGB | pseudo labels | ours | GT | error map | panoptic | depth.
+
+use std::{collections::BTreeMap, fmt::Write as _, path::Path, path::PathBuf};
+
+use arrow::{
+    array::{Array, Float64Array},
+    datatypes::{Float32Type, UInt16Type, UInt32Type, UInt8Type},
+    record_batch::RecordBatch,
+};
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::scores::METHODS;
+use crate::report::{depth_colors, error_colors, panoptic_colors, png_data_uri, training_svg};
+use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::{labels, tables};
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReportParams {
+    /// Title of the page.
+    pub title: String,
+    /// At most this many evaluation frames get a row of pictures.
+    pub max_frames: usize,
+    /// Pictures are scaled up by this integer factor (nearest neighbour) for readability.
+    pub zoom: u32,
+    /// Depth pictures map 0..depth_range metres onto the colour scale.
+    pub depth_range: f32,
+}
+
+impl Default for ReportParams {
+    fn default() -> Self {
+        Self {
+            title: "panoptic-pipe report".into(),
+            max_frames: 8,
+            zoom: 2,
+            depth_range: 50.0,
+        }
+    }
+}
+
+pub struct Report;
+
+/// (column label, metric key, scale, decimals) of the main table.
+const COLUMNS: &[(&str, &str, f64, usize)] = &[
+    ("mIoU", "miou", 100.0, 1),
+    ("Acc", "acc", 100.0, 1),
+    ("MC", "mc", 100.0, 1),
+    ("PQ", "pq", 100.0, 1),
+    ("SQ", "sq", 100.0, 1),
+    ("RQ", "rq", 100.0, 1),
+    ("PQ th", "pq_things", 100.0, 1),
+    ("PQ st", "pq_stuff", 100.0, 1),
+    ("PQ†", "pq_dagger", 100.0, 1),
+    ("depth RMSE (m)", "depth_rmse", 1.0, 2),
+    ("δ<1.25", "depth_delta_1_25", 100.0, 1),
+];
+
+fn method_label(m: &str) -> &str {
+    match m {
+        "panoptic_nerf" => "Panoptic NeRF (ours)",
+        "fixed_field" => "fixed field S_hat",
+        "pseudo_labels" => "pseudo labels (2D input)",
+        "first_primitive" => "first-primitive projection",
+        other => other,
+    }
+}
+
+fn f64_col<'a>(b: &'a RecordBatch, table: &str, col: &str) -> Result<&'a Float64Array> {
+    b.column_by_name(col)
+        .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+        .ok_or_else(|| StageError::Input(format!("table `{table}` lacks float64 column `{col}`")))
+}
+
+/// method -> metric -> value.
+fn metric_map(t: &RecordBatch) -> Result<BTreeMap<String, BTreeMap<String, Option<f64>>>> {
+    let methods = tables::get_strings(t, "metrics", "method")?;
+    let metrics = tables::get_strings(t, "metrics", "metric")?;
+    let values = f64_col(t, "metrics", "value")?;
+    let mut out: BTreeMap<String, BTreeMap<String, Option<f64>>> = BTreeMap::new();
+    for i in 0..t.num_rows() {
+        out.entry(methods.value(i).into()).or_default().insert(
+            metrics.value(i).into(),
+            (!values.is_null(i)).then(|| values.value(i)),
+        );
+    }
+    Ok(out)
+}
+
+fn fmt_value(v: Option<f64>, scale: f64, decimals: usize) -> String {
+    v.map_or("–".into(), |v| format!("{:.*}", decimals, v * scale))
+}
+
+struct Maps<'a> {
+    batch: &'a RecordBatch,
+    index: BTreeMap<(u32, u8), usize>,
+    table: &'static str,
+}
+
+impl<'a> Maps<'a> {
+    fn new(batch: &'a RecordBatch, table: &'static str) -> Result<Self> {
+        Ok(Maps {
+            batch,
+            index: tables::frame_camera_index(batch, table)?,
+            table,
+        })
+    }
+    fn u8(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u8]>> {
+        let Some(&r) = self.index.get(&key) else {
+            return Ok(None);
+        };
+        Ok(Some(
+            tables::get_list::<UInt8Type>(self.batch, self.table, col)?.row(r),
+        ))
+    }
+    fn u16(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u16]>> {
+        let Some(&r) = self.index.get(&key) else {
+            return Ok(None);
+        };
+        Ok(Some(
+            tables::get_list::<UInt16Type>(self.batch, self.table, col)?.row(r),
+        ))
+    }
+    fn f32(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [f32]>> {
+        let Some(&r) = self.index.get(&key) else {
+            return Ok(None);
+        };
+        Ok(Some(
+            tables::get_list::<Float32Type>(self.batch, self.table, col)?.row(r),
+        ))
+    }
+    fn bytes(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u8]>> {
+        let Some(&r) = self.index.get(&key) else {
+            return Ok(None);
+        };
+        Ok(Some(
+            tables::get_binary(self.batch, self.table, col)?.value(r),
+        ))
+    }
+}
+
+impl TypedStage for Report {
+    type Params = ReportParams;
+    const KIND: &'static str = "report";
+    const VERSION: u32 = 2;
+    const DESCRIPTION: &'static str =
+        "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
+    const INPUTS: &'static [InputSlot] = &[
+        InputSlot {
+            name: "scene",
+            tables: &["images", "pseudo_labels", "scene_info"],
+            optional: false,
+            doc: "the scene (RGB and pseudo labels)",
+        },
+        InputSlot {
+            name: "evaluate",
+            tables: &["metrics", "class_iou", "eval_gt"],
+            optional: false,
+            doc: "metrics and the GT they were computed against",
+        },
+        InputSlot {
+            name: "render",
+            tables: &["label_maps"],
+            optional: false,
+            doc: "rendered labels",
+        },
+        InputSlot {
+            name: "train",
+            tables: &["train_log"],
+            optional: true,
+            doc: "training log for the loss curves",
+        },
+    ];
+    const OUTPUTS: &'static [&'static str] = &["report_files"];
+
+    fn validate(p: &ReportParams) -> Result<()> {
+        if p.zoom == 0 || p.zoom > 8 {
+            return Err(StageError::Params("`zoom` must be 1..=8".into()));
+        }
+        if p.depth_range.is_nan() || p.depth_range <= 0.0 {
+            return Err(StageError::Params("`depth_range` must be positive".into()));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &ReportParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let metrics_t = inputs.table("evaluate", "metrics")?;
+        let class_t = inputs.table("evaluate", "class_iou")?;
+        let gt_t = inputs.table("evaluate", "eval_gt")?;
+        let info = inputs.table("scene", "scene_info")?;
+        let scene_name = tables::get_strings(info, "scene_info", "name")?;
+        let scene_name = if scene_name.is_empty() {
+            "?"
+        } else {
+            scene_name.value(0)
+        };
+        let metrics = metric_map(metrics_t)?;
+
+        let mut md = format!("# {}\n\nScene: `{scene_name}`\n\n", p.title);
+        let mut html = String::new();
+        let _ = write!(
+            html,
+            "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{}</title><style>\
+             body{{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}}\
+             table{{border-collapse:collapse;margin:8px 0 20px}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}\
+             th{{background:#f3f3f3}}td:first-child,th:first-child{{text-align:left}}tr.ours td{{font-weight:bold;background:#eef6ee}}\
+             .frames{{width:100%;table-layout:fixed}}.frames td{{border:none;padding:2px;text-align:center;vertical-align:top}}.frames td:first-child{{width:56px}}.frames img{{image-rendering:pixelated;display:block;width:100%;height:auto}}\
+             .cap{{font-size:12px;color:#555}}.legend span{{display:inline-block;margin:2px 8px 2px 0;font-size:12px}}\
+             .legend i{{display:inline-block;width:12px;height:12px;margin-right:4px;vertical-align:middle;border:1px solid #999}}\
+             </style></head><body><h1>{}</h1><p>Scene <code>{scene_name}</code>. Metrics on the evaluation frames \
+             (semantic metrics and PQ in %, depth RMSE in metres; – = not applicable).</p>",
+            p.title, p.title
+        );
+
+        // Main table.
+        let mut head = "| method |".to_string();
+        let mut sep = "|---|".to_string();
+        html.push_str("<h2>Metrics</h2><table><tr><th>method</th>");
+        for (label, ..) in COLUMNS {
+            let _ = write!(head, " {label} |");
+            sep.push_str("---:|");
+            let _ = write!(html, "<th>{label}</th>");
+        }
+        html.push_str("</tr>");
+        md.push_str(&format!("## Metrics\n\n{head}\n{sep}\n"));
+        for &m in METHODS {
+            let Some(vals) = metrics.get(m) else { continue };
+            let mut row = format!("| {} |", method_label(m));
+            let _ = write!(
+                html,
+                "<tr{}><td>{}</td>",
+                if m == "panoptic_nerf" {
+                    " class=\"ours\""
+                } else {
+                    ""
+                },
+                method_label(m)
+            );
+            for &(_, key, scale, dec) in COLUMNS {
+                let v = fmt_value(vals.get(key).copied().flatten(), scale, dec);
+                let _ = write!(row, " {v} |");
+                let _ = write!(html, "<td>{v}</td>");
+            }
+            md.push_str(&row);
+            md.push('\n');
+            html.push_str("</tr>");
+        }
+        html.push_str("</table>");
+
+        // Per-class IoU: classes x methods.
+        let cm = tables::get_strings(class_t, "class_iou", "method")?;
+        let cn = tables::get_strings(class_t, "class_iou", "name")?;
+        let cl = tables::get_prim::<UInt8Type>(class_t, "class_iou", "label")?;
+        let ci = f64_col(class_t, "class_iou", "iou")?;
+        let mut per_class: BTreeMap<(u8, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
+        for (i, &label) in cl.iter().enumerate() {
+            per_class
+                .entry((label, cn.value(i).to_string()))
+                .or_default()
+                .insert(cm.value(i).into(), (!ci.is_null(i)).then(|| ci.value(i)));
+        }
+        md.push_str("\n## Per-class IoU (%)\n\n| class |");
+        html.push_str("<h2>Per-class IoU (%)</h2><table><tr><th>class</th>");
+        for &m in METHODS {
+            let _ = write!(md, " {} |", method_label(m));
+            let _ = write!(html, "<th>{}</th>", method_label(m));
+        }
+        md.push_str("\n|---|");
+        md.push_str(&"---:|".repeat(METHODS.len()));
+        md.push('\n');
+        html.push_str("</tr>");
+        for ((id, name), vals) in &per_class {
+            let c = labels::color(*id);
+            let _ = write!(md, "| {name} |");
+            let _ = write!(
+                html,
+                "<tr><td><i style=\"display:inline-block;width:10px;height:10px;background:rgb({},{},{});margin-right:6px\"></i>{name}</td>",
+                c[0], c[1], c[2]
+            );
+            for &m in METHODS {
+                let v = fmt_value(vals.get(m).copied().flatten(), 100.0, 1);
+                let _ = write!(md, " {v} |");
+                let _ = write!(html, "<td>{v}</td>");
+            }
+            md.push('\n');
+            html.push_str("</tr>");
+        }
+        html.push_str("</table>");
+
+        // Training curves.
+        if let Some(log) = inputs.optional_table("train", "train_log")? {
+            if let Some(svg) = training_svg(log)? {
+                html.push_str("<h2>Training</h2>");
+                html.push_str(&svg);
+            }
+        }
+
+        // Pictures.
+        let images = Maps::new(inputs.table("scene", "images")?, "images")?;
+        let pseudo = Maps::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
+        let maps = Maps::new(inputs.table("render", "label_maps")?, "label_maps")?;
+        let gt = Maps::new(gt_t, "eval_gt")?;
+        let gw = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "width")?;
+        let gh = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "height")?;
+        html.push_str(
+            "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
+             ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
+             (yellow near, purple far).</p><div class=\"legend\">",
+        );
+        let mut present: Vec<u8> = per_class.keys().map(|(id, _)| *id).collect();
+        present.dedup();
+        for id in present {
+            let c = labels::color(id);
+            let _ = write!(
+                html,
+                "<span><i style=\"background:rgb({},{},{})\"></i>{}</span>",
+                c[0],
+                c[1],
+                c[2],
+                labels::by_id(id).map_or("?", |l| l.name)
+            );
+        }
+        html.push_str("</div><table class=\"frames\">");
+        let keys: Vec<(u32, u8)> = gt.index.keys().copied().take(p.max_frames).collect();
+        for (n, key) in keys.iter().enumerate() {
+            progress.update(n as u64, keys.len() as u64, "pictures");
+            let r = gt.index[key];
+            let (w, h) = (gw[r], gh[r]);
+            let gsem = gt.u8(*key, "semantic")?.unwrap_or(&[]);
+            let mut cells: Vec<(&str, Option<Vec<u8>>)> = vec![
+                ("RGB", images.bytes(*key, "rgb")?.map(<[u8]>::to_vec)),
+                (
+                    "pseudo labels",
+                    pseudo.u8(*key, "labels")?.map(crate::pngio::colorize),
+                ),
+            ];
+            let ours = maps.u8(*key, "semantic")?;
+            cells.push(("ours", ours.map(crate::pngio::colorize)));
+            cells.push(("ground truth", Some(crate::pngio::colorize(gsem))));
+            cells.push(("error", ours.map(|o| error_colors(o, gsem))));
+            cells.push(("panoptic", maps.u16(*key, "instance")?.map(panoptic_colors)));
+            cells.push((
+                "depth",
+                maps.f32(*key, "depth")?
+                    .map(|d| depth_colors(d, p.depth_range)),
+            ));
+            let _ = write!(
+                html,
+                "<tr><td class=\"cap\">frame {}<br>cam {}</td>",
+                key.0, key.1
+            );
+            for (cap, rgb) in cells {
+                match rgb {
+                    Some(rgb) if rgb.len() == (w * h * 3) as usize => {
+                        let uri = png_data_uri(w, h, &rgb, p.zoom)?;
+                        let _ = write!(html, "<td><img src=\"{uri}\" alt=\"{cap}\"><span class=\"cap\">{cap}</span></td>");
+                    }
+                    _ => {
+                        let _ = write!(html, "<td class=\"cap\">{cap}: n/a</td>");
+                    }
+                }
+            }
+            html.push_str("</tr>");
+        }
+        html.push_str("</table></body></html>\n");
+        md.push_str("\nPictures and training curves: see report.html.\n");
+
+        let names = vec!["report.html".to_string(), "REPORT.md".to_string()];
+        let contents = vec![html.into_bytes(), md.into_bytes()];
+        let t = tables::build(
+            "report_files",
+            vec![tables::strings(&names), tables::binary(&contents)],
+        )?;
+        Ok(Tables::from([("report_files".to_string(), t)]))
+    }
+
+    fn export(&self, _: &ReportParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+        let files = &t["report_files"];
+        let names = tables::get_strings(files, "report_files", "name")?;
+        let contents = tables::get_binary(files, "report_files", "content")?;
+        let mut out = Vec::new();
+        for i in 0..files.num_rows() {
+            let path = dir.join(names.value(i));
+            std::fs::write(&path, contents.value(i))
+                .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
+            out.push(path);
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_map_colours_void_correct_and_wrong() {
+        assert_eq!(
+            error_colors(&[7, 7, 8], &[0, 7, 7]),
+            vec![0, 0, 0, 40, 160, 60, 220, 40, 40]
+        );
+    }
+
+    #[test]
+    fn panoptic_colours_keep_stuff_and_vary_things() {
+        let c = panoptic_colors(&[7000, 26001, 26002]);
+        assert_eq!(&c[0..3], &labels::color(7));
+        assert_ne!(&c[3..6], &c[6..9]);
+    }
+}

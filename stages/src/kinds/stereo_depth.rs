@@ -1,0 +1,89 @@
+//! The `stereo_depth` kind: weak depth of the left images by semi-global matching
+//! ([`crate::scene::stereo`]), for scenes that bring no depth of their own (KITTI-360).
+
+use std::collections::BTreeMap;
+
+use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
+
+use crate::geometry::cameras_from_table;
+use crate::scene::io::{image_keys, scene_info};
+use crate::scene::stereo::{depth_from_disparity, disparity, grey, StereoParams};
+use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::tables;
+
+/// The SGM stereo stage kind.
+pub struct StereoDepth;
+
+impl TypedStage for StereoDepth {
+    type Params = StereoParams;
+    const KIND: &'static str = "stereo_depth";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str =
+        "weak depth of the left images by semi-global matching on the rectified stereo pairs \
+         (census cost, 8 paths, left-right check, sub-pixel), near range only";
+    const INPUTS: &'static [InputSlot] = &[InputSlot {
+        name: "scene",
+        tables: &["scene_info", "cameras", "images"],
+        optional: false,
+        doc: "rectified stereo images, intrinsics and the baseline",
+    }];
+    const OUTPUTS: &'static [&'static str] = &["stereo_depth"];
+
+    fn validate(p: &StereoParams) -> Result<()> {
+        p.validate()
+    }
+
+    fn run(&self, p: &StereoParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let info = scene_info(&{
+            let mut t = Tables::new();
+            t.insert(
+                "scene_info".into(),
+                inputs.table("scene", "scene_info")?.clone(),
+            );
+            t
+        })?;
+        let cams = cameras_from_table(inputs.table("scene", "cameras")?)?;
+        let images = inputs.table("scene", "images")?;
+        let keys = image_keys(images, "images")?;
+        let rgb = tables::get_binary(images, "images", "rgb")?;
+        let index: BTreeMap<(u32, u8), usize> = keys
+            .iter()
+            .enumerate()
+            .map(|(i, k)| ((k.0, k.1), i))
+            .collect();
+        let lefts: Vec<_> = cams.iter().filter(|c| c.camera == 0).collect();
+        let mut rows = Vec::new();
+        for (n, c) in lefts.iter().enumerate() {
+            progress.update(n as u64, lefts.len() as u64, "matching");
+            let (Some(&li), Some(&ri)) = (index.get(&(c.frame, 0)), index.get(&(c.frame, 1)))
+            else {
+                return Err(StageError::Input(format!(
+                    "frame {}: the `images` table needs both the left and the right image",
+                    c.frame
+                )));
+            };
+            let (w, h) = (c.cam.width as usize, c.cam.height as usize);
+            let (l, r) = (rgb.value(li), rgb.value(ri));
+            if l.len() != w * h * 3 || r.len() != w * h * 3 {
+                return Err(StageError::Input(format!(
+                    "frame {}: images are not {w}x{h} RGB as the cameras table says",
+                    c.frame
+                )));
+            }
+            let disp = disparity(&grey(l), &grey(r), w, h, p);
+            let depth = depth_from_disparity(&disp, c.cam.fx, info.baseline, p.max_depth_m);
+            rows.push(((c.frame, 0u8, w as u32, h as u32), depth));
+        }
+        let t = tables::build(
+            "stereo_depth",
+            vec![
+                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .0)),
+                tables::prim::<UInt8Type>(rows.iter().map(|r| r.0 .1)),
+                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .2)),
+                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .3)),
+                tables::list::<Float32Type>(rows.into_iter().map(|r| r.1)),
+            ],
+        )?;
+        Ok(Tables::from([("stereo_depth".to_string(), t)]))
+    }
+}

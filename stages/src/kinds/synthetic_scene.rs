@@ -1,0 +1,50 @@
+//! The `synthetic_scene` kind: the built-in synthetic street ([`crate::scene::synthetic`]) as
+//! scene tables, exported in the KITTI-360 layout with previews.
+
+use std::path::{Path, PathBuf};
+
+use crate::scene::{
+    kitti360_export, preview,
+    synthetic::{generate, to_tables, SceneParams},
+};
+use crate::stage::{InputSlot, Inputs, Progress, Result, Tables, TypedStage};
+
+/// The synthetic street scene kind.
+pub struct SyntheticScene;
+
+impl TypedStage for SyntheticScene {
+    type Params = SceneParams;
+    const KIND: &'static str = "synthetic_scene";
+    const VERSION: u32 = 1;
+    const DESCRIPTION: &'static str =
+        "synthetic urban street: stereo images, GT labels and depth, 3D bounding primitives, \
+         noisy pseudo labels, stereo and LiDAR depth";
+    const INPUTS: &'static [InputSlot] = &[];
+    const OUTPUTS: &'static [&'static str] = &[
+        "scene_info",
+        "cameras",
+        "primitives",
+        "images",
+        "pseudo_labels",
+        "stereo_depth",
+        "lidar_depth",
+        "gt_semantic",
+        "gt_instance",
+        "gt_depth",
+    ];
+
+    fn validate(p: &SceneParams) -> Result<()> {
+        p.validate()
+    }
+
+    fn run(&self, p: &SceneParams, _: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let g = generate(p, progress)?;
+        to_tables(p, &g)
+    }
+
+    fn export(&self, _: &SceneParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+        let mut files = kitti360_export::write(t, dir)?;
+        files.extend(preview::write(t, &dir.join("previews"))?);
+        Ok(files)
+    }
+}

@@ -1,0 +1,216 @@
+//! The `train` stage kind: fits the radiance field with dual semantic fields to one scene.
+//! Rays come from the `intersect` stage's sampling plan (samples only inside primitives plus the
+//! sky interval, re-jittered every iteration); targets from the scene (RGB, pseudo labels,
+//! stereo depth). Writes the weights as `(name, shape, values)` rows readable by pyarrow, the
+//! model description needed to rebuild the field, and the training log. The model itself is
+//! [`crate::model`]'s; this is glue between tables, the sampler and the engine.
+
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, Float32Array};
+use arrow::datatypes::{Float32Type, Float64Type, UInt32Type};
+use arrow::record_batch::RecordBatch;
+use serde::{Deserialize, Serialize};
+
+use crate::model::{
+    fit, weights, BatchOrder, Engine, FieldSpec, LossTerm, LossTerms, ModelInfo, RayBatch,
+    TrainConfig,
+};
+use crate::rng::SplitMix64;
+use crate::sampling::{self, RaySet, SamplingParams};
+use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::tables;
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainParams {
+    /// Optimiser, losses and field architecture.
+    pub train: TrainConfig,
+    /// Where samples go along each ray.
+    pub sampling: SamplingParams,
+    /// Cameras whose rays are trained on (0 = left, 1 = right).
+    pub cameras: Vec<u8>,
+    /// The engine: `fused` (default: hand-written CPU kernels of the grid field), or a burn
+    /// backend: flex, ndarray, wgpu or cuda (the latter need their cargo feature).
+    pub backend: Engine,
+}
+
+impl Default for TrainParams {
+    fn default() -> Self {
+        Self {
+            train: TrainConfig::default(),
+            sampling: SamplingParams::default(),
+            cameras: vec![0, 1],
+            backend: Engine::Fused,
+        }
+    }
+}
+
+pub struct Train;
+
+/// The field spec of a ray set: its classes and the bounds of its primitives.
+pub fn spec_for(set: &RaySet, config: &TrainConfig) -> FieldSpec {
+    let pad = 1.0;
+    FieldSpec {
+        config: config.field.clone(),
+        num_classes: set.classes.len(),
+        aabb_min: set.bounds_min.map(|v| v - pad),
+        aabb_max: set.bounds_max.map(|v| v + pad),
+        seed: config.seed,
+    }
+}
+
+/// Rays of the selected cameras that cross a primitive: the ones training draws from.
+fn candidates(set: &RaySet, cameras: &[u8]) -> Vec<u32> {
+    set.images
+        .iter()
+        .filter(|im| cameras.contains(&im.camera))
+        .flat_map(|im| {
+            let n = (im.width * im.height) as usize;
+            (im.first_ray..im.first_ray + n)
+                .filter(|&r| set.hits_anything(r))
+                .map(|r| r as u32)
+        })
+        .collect()
+}
+
+impl TypedStage for Train {
+    type Params = TrainParams;
+    const KIND: &'static str = "train";
+    const VERSION: u32 = 4;
+    const DESCRIPTION: &'static str =
+        "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
+    const INPUTS: &'static [InputSlot] = &[
+        InputSlot {
+            name: "scene",
+            tables: &[
+                "cameras",
+                "primitives",
+                "images",
+                "pseudo_labels",
+                "stereo_depth",
+            ],
+            optional: false,
+            doc: "posed images, primitives, pseudo labels and stereo depth",
+        },
+        InputSlot {
+            name: "rays",
+            tables: &["ray_intervals"],
+            optional: false,
+            doc: "the sampling plan",
+        },
+        InputSlot {
+            name: "depth",
+            tables: &["stereo_depth"],
+            optional: true,
+            doc: "stereo depth for L_depth (default: the scene's own stereo_depth table)",
+        },
+    ];
+    const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
+    const BUDGET_PARAM: Option<&'static str> = Some("train.iterations");
+
+    fn validate(p: &TrainParams) -> Result<()> {
+        p.train.validate().map_err(StageError::Params)?;
+        p.sampling.validate()?;
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
+            return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));
+        }
+        p.backend.supports(&p.train.field)?;
+        Ok(())
+    }
+
+    fn run(&self, p: &TrainParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let set = RaySet::from_inputs(inputs)?;
+        let candidates = candidates(&set, &p.cameras);
+        if candidates.is_empty() {
+            return Err(StageError::Input(
+                "no ray of the selected cameras crosses a primitive".into(),
+            ));
+        }
+        let mut trainer = p.backend.trainer(&p.train, spec_for(&set, &p.train))?;
+        let iters = p.train.iterations;
+        let batch = p.train.rays_per_batch.min(candidates.len());
+        let start = std::time::Instant::now();
+        let mut log = LogColumns::default();
+        let mut order = BatchOrder::new(p.train.seed, candidates.len(), batch);
+        // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from a
+        // SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share all
+        // but one ray: training saw only ~iterations + batch distinct rays.)
+        let next_batch = |it: usize| {
+            let ids: Vec<u32> = order.indices(it).iter().map(|&i| candidates[i]).collect();
+            let jitter =
+                SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+                    .next_u64();
+            RayBatch::from_samples(&sampling::sample_batch(
+                &set,
+                &ids,
+                &p.sampling,
+                Some(jitter),
+            ))
+        };
+        fit(trainer.as_mut(), iters, next_batch, |losses| {
+            let it = losses.iteration;
+            let secs = start.elapsed().as_secs_f64();
+            log.push(it as u32, secs, losses);
+            if it % 10 == 0 || it + 1 == iters {
+                let rays_s = (it + 1) as f64 * batch as f64 / secs.max(1e-9);
+                progress.update(
+                    it as u64 + 1,
+                    iters as u64,
+                    &format!("loss {:.4} ({:.0} rays/s)", losses.total, rays_s),
+                );
+            }
+        })?;
+        let info = ModelInfo {
+            spec: spec_for(&set, &p.train),
+            sampling: p.sampling.clone(),
+            classes: set.classes.clone(),
+        };
+        Ok(Tables::from([
+            (
+                "weights".to_string(),
+                weights::weights_table(&trainer.weights())?,
+            ),
+            ("model".to_string(), weights::model_table(&info, p.backend)?),
+            ("train_log".to_string(), log.table()?),
+        ]))
+    }
+}
+
+/// Columns of the train log.
+#[derive(Default)]
+struct LogColumns {
+    iteration: Vec<u32>,
+    seconds: Vec<f64>,
+    lr: Vec<f64>,
+    total: Vec<f32>,
+    grad_norm: Vec<f32>,
+    terms: [Vec<Option<f32>>; 5],
+}
+
+impl LogColumns {
+    fn push(&mut self, it: u32, secs: f64, l: &LossTerms) {
+        self.iteration.push(it);
+        self.seconds.push(secs);
+        self.lr.push(l.lr);
+        self.total.push(l.total);
+        self.grad_norm.push(l.grad_norm);
+        for (k, term) in LossTerm::ALL.into_iter().enumerate() {
+            self.terms[k].push(l.get(term));
+        }
+    }
+
+    fn table(self) -> Result<RecordBatch> {
+        let mut cols: Vec<ArrayRef> = vec![
+            tables::prim::<UInt32Type>(self.iteration),
+            tables::prim::<Float64Type>(self.seconds),
+            tables::prim::<Float64Type>(self.lr),
+            tables::prim::<Float32Type>(self.total),
+            tables::prim::<Float32Type>(self.grad_norm),
+        ];
+        for t in self.terms {
+            cols.push(Arc::new(Float32Array::from(t)));
+        }
+        tables::build("train_log", cols)
+    }
+}

@@ -1,0 +1,69 @@
+//! The methods the evaluation scores, and how its `metrics` table reads for tools that do not
+//! know the method (`pipe bench` reads [`SCORES`] through the `evaluate` kind).
+
+use crate::stage::{MethodInfo, MetricInfo, ScoreSpec};
+
+/// Methods in the order tables and reports list them.
+pub const METHODS: &[&str] = &[
+    "panoptic_nerf",
+    "fixed_field",
+    "pseudo_labels",
+    "first_primitive",
+];
+
+const fn pct(name: &'static str, label: &'static str) -> MetricInfo {
+    MetricInfo {
+        name,
+        label,
+        unit: "%",
+        scale: 100.0,
+        decimals: 1,
+        semantic: true,
+    }
+}
+
+/// How the `metrics` table reads (for `pipe bench`).
+pub const SCORES: ScoreSpec = ScoreSpec {
+    table: "metrics",
+    method: "panoptic_nerf",
+    baselines: &[
+        MethodInfo {
+            name: "pseudo_labels",
+            label: "pseudo labels",
+            depends_on_budget: false,
+        },
+        MethodInfo {
+            name: "first_primitive",
+            label: "first primitive",
+            depends_on_budget: false,
+        },
+        MethodInfo {
+            name: "fixed_field",
+            label: "fixed field",
+            depends_on_budget: true,
+        },
+    ],
+    metrics: &[
+        pct("miou", "mIoU"),
+        pct("acc", "Acc"),
+        pct("pq", "PQ"),
+        pct("mc", "MC"),
+        MetricInfo {
+            name: "depth_rmse",
+            label: "depth RMSE",
+            unit: "m",
+            scale: 1.0,
+            decimals: 2,
+            semantic: false,
+        },
+        MetricInfo {
+            semantic: false,
+            ..pct("depth_delta_1_25", "delta<1.25")
+        },
+    ],
+    headline: "miou",
+    per_run: &["miou", "acc", "pq", "depth_rmse", "depth_delta_1_25"],
+    per_baseline: &["miou", "acc", "pq", "mc"],
+    ablation: &["depth_rmse", "depth_delta_1_25", "miou", "acc"],
+    plotted: &["miou", "pq", "depth_rmse"],
+};

@@ -1,0 +1,320 @@
+//! The fused engine's trainer: the step split over a fixed number of ray partitions, the
+//! gradients reduced in partition order, global-norm clipping and Adam.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::field::{FusedField, PARTITIONS};
+use super::step::Scale;
+use super::work::{scatter_grid, Sums, Work};
+use crate::model::batch::RayBatch;
+use crate::model::config::TrainConfig;
+use crate::model::error::TrainError;
+use crate::model::field::Heads;
+use crate::model::loss::{LossTerm, LossTerms};
+use crate::model::params::NamedWeight;
+use crate::model::train::Gradients;
+
+/// Trains a [`FusedField`] with the losses, clipping and Adam of the burn engine's trainer.
+pub struct FusedTrainer {
+    field: FusedField,
+    config: TrainConfig,
+    terms: Vec<LossTerm>,
+    iteration: usize,
+    moment1: Vec<Vec<f32>>,
+    moment2: Vec<Vec<f32>>,
+    work: Vec<Work>,
+    /// Seconds spent in the last step's phases (forward, backward, reduce + Adam).
+    pub timings: [f64; 3],
+}
+
+impl FusedTrainer {
+    /// Starts from the initial parameters of `field` (same seed => same start as burn).
+    pub fn new(config: TrainConfig, field: FusedField) -> Result<Self, TrainError> {
+        config.validate().map_err(TrainError::Config)?;
+        let zeros: Vec<Vec<f32>> = field
+            .weights
+            .iter()
+            .map(|w| vec![0.0; w.values.len()])
+            .collect();
+        let terms = config.losses.enabled();
+        Ok(Self {
+            field,
+            config,
+            terms,
+            iteration: 0,
+            moment1: zeros.clone(),
+            moment2: zeros,
+            work: (0..PARTITIONS).map(|_| Work::default()).collect(),
+            timings: [0.0; 3],
+        })
+    }
+
+    pub fn field(&self) -> &FusedField {
+        &self.field
+    }
+
+    pub fn into_field(self) -> FusedField {
+        self.field
+    }
+
+    pub fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    /// Loss values and summed gradients of `batch` (all enabled terms, or only `only`),
+    /// left in `self.work[0].grads`.
+    fn compute(
+        &mut self,
+        batch: &RayBatch,
+        only: Option<LossTerm>,
+    ) -> Result<Vec<(LossTerm, f32)>, TrainError> {
+        batch.validate().map_err(TrainError::Batch)?;
+        let s = &batch.samples;
+        let t = &batch.targets;
+        if s.classes != self.field.spec.num_classes {
+            return Err(TrainError::Batch(format!(
+                "batch has {} classes, the field {}",
+                s.classes, self.field.spec.num_classes
+            )));
+        }
+        let terms: Vec<LossTerm> = match only {
+            Some(t) => vec![t],
+            None => self.terms.clone(),
+        };
+        let mut weights = [0f32; 5];
+        for (k, term) in LossTerm::ALL.into_iter().enumerate() {
+            if terms.contains(&term) {
+                weights[k] = self.config.losses.get(term);
+            }
+        }
+        let heads = Heads {
+            rgb: weights[3] != 0.0,
+            semantics: weights[1] != 0.0 || weights[2] != 0.0,
+        };
+        let rays = s.rays;
+        let parts = PARTITIONS.min(rays.max(1));
+        let bounds: Vec<(usize, usize)> = (0..parts)
+            .map(|p| (p * rays / parts, (p + 1) * rays / parts))
+            .collect();
+        let field = &self.field;
+        let params = field.params();
+        let config = &self.config;
+        let sky = s.classes - 1;
+        let start = Instant::now();
+        self.work[..parts]
+            .par_iter_mut()
+            .zip(&bounds)
+            .for_each(|(w, &(r0, r1))| {
+                w.forward_step(field, &params, batch, r0, r1, heads, config, sky, &weights);
+            });
+        let mut sums = Sums::default();
+        for w in &self.work[..parts] {
+            for k in 0..5 {
+                sums.terms[k] += w.sums.terms[k];
+            }
+            sums.points_3d += w.sums.points_3d;
+        }
+        let labelled = t.labels.iter().filter(|&&l| l >= 0).count();
+        let learned = t
+            .labels
+            .iter()
+            .zip(&t.ray_mask)
+            .filter(|(&l, &m)| l >= 0 && (!config.ray_mask || m != 0.0))
+            .count();
+        let valid = t.depth_valid.iter().filter(|&&v| v).count();
+        let scale = Scale {
+            weights,
+            fixed: labelled.max(1) as f32,
+            learned: learned.max(1) as f32,
+            point: (sums.points_3d as f32).max(1.0),
+            rgb: (3 * rays).max(1) as f32,
+            depth: valid.max(1) as f32,
+        };
+        let norms = [
+            scale.fixed,
+            scale.learned,
+            scale.point,
+            scale.rgb,
+            scale.depth,
+        ];
+        let values: Vec<(LossTerm, f32)> = terms
+            .iter()
+            .map(|&term| {
+                let k = LossTerm::ALL.iter().position(|&x| x == term).expect("term");
+                (term, (sums.terms[k] / norms[k] as f64) as f32)
+            })
+            .collect();
+        for &(term, value) in &values {
+            if !value.is_finite() {
+                return Err(TrainError::NonFiniteLoss {
+                    iteration: self.iteration,
+                    term,
+                    value,
+                });
+            }
+        }
+        let forward = start.elapsed().as_secs_f64();
+        self.work[..parts]
+            .par_iter_mut()
+            .zip(&bounds)
+            .for_each(|(w, &(r0, r1))| {
+                w.backward_step(field, &params, batch, r0, r1, heads, config, sky, &scale);
+            });
+        let mut table = std::mem::take(&mut self.work[0].grads[field.grid]);
+        table.resize(field.weights[field.grid].values.len(), 0.0);
+        scatter_grid(field, &self.work[..parts], &bounds, s.samples, &mut table);
+        self.work[0].grads[field.grid] = table;
+        self.timings[0] = forward;
+        self.timings[1] = start.elapsed().as_secs_f64() - forward;
+        // Sum the partitions' MLP gradients into the first, in partition order.
+        let (first, rest) = self.work.split_at_mut(1);
+        let rest = &rest[..parts - 1];
+        for (k, g) in first[0].grads.iter_mut().enumerate() {
+            if k == field.grid {
+                continue;
+            }
+            g.par_chunks_mut(1 << 14)
+                .enumerate()
+                .for_each(|(ci, chunk)| {
+                    let (o, len) = (ci << 14, chunk.len());
+                    for w in rest {
+                        chunk
+                            .iter_mut()
+                            .zip(&w.grads[k][o..o + len])
+                            .for_each(|(a, b)| *a += b);
+                    }
+                });
+        }
+        Ok(values)
+    }
+
+    /// Loss values and gradients of `batch` without updating anything.
+    pub fn gradients(&mut self, batch: &RayBatch) -> Result<Gradients, TrainError> {
+        let terms = self.compute(batch, None)?;
+        let grads = self
+            .field
+            .weights
+            .iter()
+            .zip(&self.work[0].grads)
+            .map(|(w, g)| NamedWeight {
+                name: w.name.clone(),
+                shape: w.shape.clone(),
+                values: g.clone(),
+            })
+            .collect();
+        Ok(Gradients { terms, grads })
+    }
+
+    /// Global gradient norm of `work[0].grads`, or the name of a parameter with a non-finite
+    /// gradient.
+    fn grad_norm(&self) -> Result<f32, String> {
+        let mut total = 0f64;
+        for (w, g) in self.field.weights.iter().zip(&self.work[0].grads) {
+            let s: f64 = g.par_iter().map(|&v| (v as f64) * (v as f64)).sum();
+            if !s.is_finite() {
+                return Err(w.name.clone());
+            }
+            total += s;
+        }
+        Ok(total.sqrt() as f32)
+    }
+
+    /// One step: forward, losses, backward, global-norm clipping, Adam. On error the weights are
+    /// unchanged.
+    pub fn step(&mut self, batch: &RayBatch) -> Result<LossTerms, TrainError> {
+        let iteration = self.iteration;
+        let lr = self.config.lr_at(iteration);
+        let values = self.compute(batch, None)?;
+        let adam_start = Instant::now();
+        let norm = match self.grad_norm() {
+            Ok(n) if n.is_finite() => n,
+            Ok(_) => return Err(self.blame(batch, "(norm overflow)")),
+            Err(p) => return Err(self.blame(batch, &p)),
+        };
+        let clip = self.config.grad_clip_norm;
+        let factor = if clip > 0.0 && norm > clip {
+            clip / (norm + 1e-6)
+        } else {
+            1.0
+        };
+        let (b1, b2, eps) = (
+            self.config.adam_beta1,
+            self.config.adam_beta2,
+            self.config.adam_epsilon,
+        );
+        let time = (iteration + 1) as i32;
+        let (c1, c2) = (1.0 - b1.powi(time), 1.0 - b2.powi(time));
+        let lr = lr as f32;
+        for (k, w) in self.field.weights.iter_mut().enumerate() {
+            let g = &self.work[0].grads[k];
+            w.values
+                .par_chunks_mut(1 << 14)
+                .zip(self.moment1[k].par_chunks_mut(1 << 14))
+                .zip(self.moment2[k].par_chunks_mut(1 << 14))
+                .zip(g.par_chunks(1 << 14))
+                .for_each(|(((p, m), v), g)| {
+                    for i in 0..p.len() {
+                        let gi = g[i] * factor;
+                        m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                        v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                        let update = (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
+                        p[i] -= lr * update;
+                    }
+                });
+        }
+        self.timings[2] = adam_start.elapsed().as_secs_f64();
+        self.iteration += 1;
+        let total = values
+            .iter()
+            .map(|&(t, v)| self.config.losses.get(t) * v)
+            .sum();
+        Ok(LossTerms {
+            iteration,
+            lr: lr as f64,
+            terms: values,
+            total,
+            grad_norm: norm,
+        })
+    }
+
+    /// Failure path: the first single term whose gradient is not finite (else `total`).
+    fn blame(&mut self, batch: &RayBatch, param: &str) -> TrainError {
+        let iteration = self.iteration;
+        for term in self.terms.clone() {
+            if self.compute(batch, Some(term)).is_ok() {
+                if let Err(p) = self.grad_norm() {
+                    return TrainError::NonFiniteGradient {
+                        iteration,
+                        term: term.name().to_string(),
+                        param: p,
+                    };
+                }
+            }
+        }
+        TrainError::NonFiniteGradient {
+            iteration,
+            term: "total".to_string(),
+            param: param.to_string(),
+        }
+    }
+}
+
+impl crate::model::train::Trainer for FusedTrainer {
+    fn step(&mut self, batch: &RayBatch) -> Result<LossTerms, TrainError> {
+        FusedTrainer::step(self, batch)
+    }
+
+    fn gradients(&mut self, batch: &RayBatch) -> Result<Gradients, TrainError> {
+        FusedTrainer::gradients(self, batch)
+    }
+
+    fn iteration(&self) -> usize {
+        self.iteration
+    }
+
+    fn weights(&self) -> Vec<NamedWeight> {
+        self.field.weights.clone()
+    }
+}

@@ -1,0 +1,70 @@
+//! What training reports: the loss terms of Panoptic NeRF by name, the losses of one step, and
+//! why a step failed. The terms themselves are defined once, on tensors, in
+//! [`crate::model::burn::loss`] (differentiable, gradient-checked); the fused engine computes
+//! the same formulas by hand and is held equal to them by tests.
+
+/// Added to a rendered probability before its log (named and tested: the gradient is at most
+/// `1 / PROB_EPS`, and `-log(PROB_EPS)` ~ 13.8 bounds the loss of an impossible label).
+pub const PROB_EPS: f32 = 1e-6;
+
+/// The loss terms, for names in errors and logs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum LossTerm {
+    /// L_fixed2D: -log S_hat(label), the semantically guided geometry term.
+    Fixed2d,
+    /// L_learned2D: u(r) * -log S(label).
+    Learned2d,
+    /// L_3D: per-point CE between the fixed and learned distributions.
+    Point3d,
+    /// L_rgb: squared colour error.
+    Rgb,
+    /// L_depth: squared error against stereo depth.
+    Depth,
+}
+
+impl LossTerm {
+    pub const ALL: [LossTerm; 5] = [
+        LossTerm::Fixed2d,
+        LossTerm::Learned2d,
+        LossTerm::Point3d,
+        LossTerm::Rgb,
+        LossTerm::Depth,
+    ];
+
+    /// Column name in the train log (`fixed_2d`, `learned_2d`, `point_3d`, `rgb`, `depth`).
+    pub fn name(self) -> &'static str {
+        match self {
+            LossTerm::Fixed2d => "fixed_2d",
+            LossTerm::Learned2d => "learned_2d",
+            LossTerm::Point3d => "point_3d",
+            LossTerm::Rgb => "rgb",
+            LossTerm::Depth => "depth",
+        }
+    }
+}
+
+impl std::fmt::Display for LossTerm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// What one step reports.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LossTerms {
+    pub iteration: usize,
+    pub lr: f64,
+    /// Unweighted value of each enabled term.
+    pub terms: Vec<(LossTerm, f32)>,
+    /// Weighted sum, the optimised quantity.
+    pub total: f32,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f32,
+}
+
+impl LossTerms {
+    /// Unweighted value of `term`, `None` when disabled.
+    pub fn get(&self, term: LossTerm) -> Option<f32> {
+        self.terms.iter().find(|(t, _)| *t == term).map(|(_, v)| *v)
+    }
+}

@@ -1,0 +1,8 @@
+//! What people look at: pictures of label maps and plots of training, for the `report` and
+//! `render` kinds.
+
+pub mod pictures;
+pub mod plots;
+
+pub use pictures::{depth_colors, error_colors, panoptic_colors, png_data_uri};
+pub use plots::training_svg;

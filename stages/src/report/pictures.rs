@@ -1,0 +1,81 @@
+//! Pictures of label maps for people: PNG data URIs, panoptic, error and depth colourings.
+
+use std::io::Cursor;
+
+use base64::Engine as _;
+use plotters::style::colors::colormaps::ViridisRGB;
+
+use crate::labels;
+use crate::stage::{Result, StageError};
+
+/// `rgb` as an inline PNG (`data:` URI), scaled up `zoom` times (nearest neighbour).
+pub fn png_data_uri(w: u32, h: u32, rgb: &[u8], zoom: u32) -> Result<String> {
+    let img = image::RgbImage::from_raw(w, h, rgb.to_vec()).ok_or_else(|| {
+        StageError::Input(format!(
+            "{} bytes do not make a {w}x{h} RGB image",
+            rgb.len()
+        ))
+    })?;
+    let img = if zoom > 1 {
+        image::imageops::resize(
+            &img,
+            w * zoom,
+            h * zoom,
+            image::imageops::FilterType::Nearest,
+        )
+    } else {
+        img
+    };
+    let mut buf = Cursor::new(Vec::new());
+    img.write_to(&mut buf, image::ImageFormat::Png)
+        .map_err(|e| StageError::Failed(format!("encoding PNG: {e}")))?;
+    Ok(format!(
+        "data:image/png;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(buf.into_inner())
+    ))
+}
+
+/// Panoptic colours: the class colour, shifted per instance so neighbouring things differ.
+pub fn panoptic_colors(instance: &[u16]) -> Vec<u8> {
+    instance
+        .iter()
+        .flat_map(|&v| {
+            let class = (v as u32 / labels::INSTANCE_FACTOR) as u8;
+            let inst = v as u32 % labels::INSTANCE_FACTOR;
+            let base = labels::color(class);
+            if inst == 0 {
+                return base;
+            }
+            let h = inst.wrapping_mul(2654435761);
+            let jitter =
+                |c: u8, s: u32| (c as i32 + ((h >> s) & 0x7f) as i32 - 64).clamp(0, 255) as u8;
+            [jitter(base[0], 0), jitter(base[1], 8), jitter(base[2], 16)]
+        })
+        .collect()
+}
+
+/// Green where the prediction equals GT, red where it differs, black where GT is void.
+pub fn error_colors(pred: &[u8], gt: &[u8]) -> Vec<u8> {
+    pred.iter()
+        .zip(gt)
+        .flat_map(|(&p, &g)| match (g, p == g) {
+            (0, _) => [0, 0, 0],
+            (_, true) => [40, 160, 60],
+            (_, false) => [220, 40, 40],
+        })
+        .collect()
+}
+
+/// Depth as colour: near = yellow, far = dark purple, no depth = black.
+pub fn depth_colors(depth: &[f32], range: f32) -> Vec<u8> {
+    depth
+        .iter()
+        .flat_map(|&d| {
+            if !(d.is_finite() && d > 0.0) {
+                return [0, 0, 0];
+            }
+            let c = ViridisRGB::get_color((1.0 - (d / range).clamp(0.0, 1.0)) as f64);
+            [c.0, c.1, c.2]
+        })
+        .collect()
+}
