@@ -22,13 +22,12 @@ use burn::tensor::{Tensor, TensorData};
 use proptest::prelude::*;
 use serde_json::{json, Value};
 use stages::{
+    geometry::{cameras_from_table, primitives_from_table, DAffine3, DMat3, DVec3, Primitive},
+    geometry::{Interval, Ray, Shape},
     model::burn::loss::{depth_mse, label_nll},
     model::burn::render::{render_depth, render_semantics, render_weights},
     model::burn::Backend,
-    geometry::{cameras_from_table, primitives_from_table, DAffine3, DMat3, DVec3, Primitive},
-    geometry::{Interval, Ray, Shape},
-    tables,
-    Inputs, NoProgress, Tables,
+    tables, Inputs, NoProgress, Tables,
 };
 
 // ---- volume rendering ----

@@ -4,7 +4,6 @@
 //! sampled; rays that meet nothing are marked (`hits = 0`) so later stages render them as sky
 //! without evaluating a network. Output: `ray_intervals` (see `data_schema/ray_intervals.json`).
 
-
 use arrow::{
     datatypes::{Float32Type, UInt32Type, UInt8Type},
     record_batch::RecordBatch,

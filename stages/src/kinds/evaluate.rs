@@ -23,7 +23,7 @@ use crate::{
     labels,
     metrics::{
         multiview_consistency, ConfusionMatrix, Consistency, DepthAccumulator, LabelledView,
-        PanopticAccumulator, PanopticConfig, Pinhole,
+        PanopticAccumulator, PanopticConfig, PanopticResult, Pinhole, PqSummary,
     },
     tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Tables, TypedStage,
 };
@@ -166,6 +166,33 @@ struct GtRows {
     instance: Vec<Vec<u16>>,
 }
 
+impl GtRows {
+    fn push(&mut self, c: &CameraRow, g: &Image, semantic: &[u8], instance: &[u16]) {
+        self.frame.push(c.frame);
+        self.camera.push(c.camera);
+        self.width.push(g.width as u32);
+        self.height.push(g.height as u32);
+        self.semantic.push(semantic.to_vec());
+        self.instance.push(instance.to_vec());
+    }
+
+    /// The `eval_gt` table.
+    fn table(self, sequence: &str) -> Result<RecordBatch> {
+        tables::build(
+            "eval_gt",
+            vec![
+                tables::strings(vec![sequence; self.frame.len()]),
+                tables::prim::<UInt32Type>(self.frame),
+                tables::prim::<UInt8Type>(self.camera),
+                tables::prim::<UInt32Type>(self.width),
+                tables::prim::<UInt32Type>(self.height),
+                tables::list::<UInt8Type>(self.semantic),
+                tables::list::<UInt16Type>(self.instance),
+            ],
+        )
+    }
+}
+
 /// Columns of the `class_iou` table.
 #[derive(Default)]
 struct ClassRows {
@@ -178,12 +205,284 @@ struct ClassRows {
     fn_: Vec<u64>,
 }
 
+impl ClassRows {
+    fn push(&mut self, method: &str, confusion: &ConfusionMatrix) {
+        for row in confusion.table() {
+            self.method.push(method.to_string());
+            self.label.push(row.class);
+            self.name
+                .push(labels::by_id(row.class).map_or("?", |l| l.name).to_string());
+            self.iou.push(row.iou);
+            self.tp.push(row.tp);
+            self.fp.push(row.fp);
+            self.fn_.push(row.fn_);
+        }
+    }
+
+    fn table(self) -> Result<RecordBatch> {
+        tables::build(
+            "class_iou",
+            vec![
+                tables::strings(&self.method),
+                tables::prim::<UInt8Type>(self.label),
+                tables::strings(&self.name),
+                Arc::new(Float64Array::from(self.iou)) as ArrayRef,
+                tables::prim::<UInt64Type>(self.tp),
+                tables::prim::<UInt64Type>(self.fp),
+                tables::prim::<UInt64Type>(self.fn_),
+            ],
+        )
+    }
+}
+
 /// Accumulators of one method.
 struct MethodSums {
     confusion: ConfusionMatrix,
     panoptic: Option<PanopticAccumulator>,
     depth: Option<DepthAccumulator>,
     mc: Option<Consistency>,
+}
+
+/// The per-image tables evaluation reads, indexed by (frame, camera).
+struct Sources<'a> {
+    gt_sem: HashMap<(u32, u8), Image<'a>>,
+    gt_inst: HashMap<(u32, u8), Image<'a>>,
+    pseudo: HashMap<(u32, u8), Image<'a>>,
+    lidar: HashMap<(u32, u8), Image<'a>>,
+    maps: HashMap<(u32, u8), Image<'a>>,
+}
+
+impl<'a> Sources<'a> {
+    fn new(inputs: &Inputs<'a>) -> Result<Self> {
+        let index = |slot: &str, table: &str| index_images(inputs.table(slot, table)?, table);
+        Ok(Self {
+            gt_sem: index("scene", "gt_semantic")?,
+            gt_inst: index("scene", "gt_instance")?,
+            pseudo: index("scene", "pseudo_labels")?,
+            lidar: index("scene", "lidar_depth")?,
+            maps: index("render", "label_maps")?,
+        })
+    }
+
+    fn lidar_depth(&self, key: (u32, u8)) -> Result<Option<&'a [f32]>> {
+        self.lidar
+            .get(&key)
+            .map(|l| map_f32(l, "lidar_depth", "depth"))
+            .transpose()
+    }
+}
+
+/// The accumulators of every method, and what the per-frame pass keeps for later.
+struct Evaluation {
+    sums: BTreeMap<&'static str, MethodSums>,
+    /// Label maps per method per evaluated image, kept for multi-view consistency.
+    labels_of: BTreeMap<(&'static str, u32, u8), Vec<u8>>,
+    pseudo_frames: usize,
+    gt: GtRows,
+}
+
+impl Evaluation {
+    fn new(p: &EvaluateParams) -> Result<Self> {
+        let pan_cfg = PanopticConfig {
+            classes: p.classes.clone(),
+            things: p.things.clone(),
+            min_gt_segment_px: p.min_segment_px,
+            min_pred_segment_px: Some(p.min_segment_px),
+            sky_id: labels::SKY,
+        };
+        let new_sums = |panoptic: bool, depth: bool| -> Result<MethodSums> {
+            Ok(MethodSums {
+                confusion: ConfusionMatrix::new(&p.classes)?,
+                panoptic: if panoptic {
+                    Some(PanopticAccumulator::new(pan_cfg.clone())?)
+                } else {
+                    None
+                },
+                depth: if depth {
+                    Some(DepthAccumulator::new(p.max_depth)?)
+                } else {
+                    None
+                },
+                mc: Some(Consistency::default()),
+            })
+        };
+        let mut sums: BTreeMap<&'static str, MethodSums> = BTreeMap::new();
+        sums.insert("panoptic_nerf", new_sums(true, true)?);
+        sums.insert("fixed_field", new_sums(false, false)?);
+        sums.insert("pseudo_labels", new_sums(false, false)?);
+        sums.insert("first_primitive", new_sums(true, false)?);
+        Ok(Self {
+            sums,
+            labels_of: BTreeMap::new(),
+            pseudo_frames: 0,
+            gt: GtRows::default(),
+        })
+    }
+
+    /// Scores every method on the evaluation image `c`.
+    fn add_frame(
+        &mut self,
+        src: &Sources,
+        c: &CameraRow,
+        prims: &[Primitive],
+        bvh: &Bvh,
+    ) -> Result<()> {
+        let missing = |what: &str| {
+            StageError::Input(format!(
+                "no `{what}` row for frame {} camera {}",
+                c.frame, c.camera
+            ))
+        };
+        let key = (c.frame, c.camera);
+        let g = src.gt_sem.get(&key).ok_or_else(|| missing("gt_semantic"))?;
+        let gi = src
+            .gt_inst
+            .get(&key)
+            .ok_or_else(|| missing("gt_instance"))?;
+        let m = src.maps.get(&key).ok_or_else(|| missing("label_maps"))?;
+        if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
+            || (m.width, m.height) != (g.width, g.height)
+        {
+            return Err(StageError::Input(format!(
+                "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
+                c.frame, c.camera
+            )));
+        }
+        let gsem = map_u8(g, "gt_semantic", "labels")?;
+        let ginst = map_u16(gi, "gt_instance", "instances")?;
+        let ours = map_u8(m, "label_maps", "semantic")?;
+        let ours_inst = map_u16(m, "label_maps", "instance")?;
+        let fixed = map_u8(m, "label_maps", "fixed_semantic")?;
+        let depth = map_f32(m, "label_maps", "depth")?;
+        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
+        self.gt.push(c, g, gsem, ginst);
+
+        let s = self.sums.get_mut("panoptic_nerf").unwrap();
+        s.confusion.add(gsem, ours)?;
+        s.panoptic
+            .as_mut()
+            .unwrap()
+            .add_frame(gsem, ginst, ours, ours_inst)?;
+        if let Some(l) = src.lidar_depth(key)? {
+            s.depth.as_mut().unwrap().add(depth, l)?;
+        }
+        self.labels_of
+            .insert(("panoptic_nerf", c.frame, c.camera), ours.to_vec());
+
+        self.sums
+            .get_mut("fixed_field")
+            .unwrap()
+            .confusion
+            .add(gsem, fixed)?;
+        self.labels_of
+            .insert(("fixed_field", c.frame, c.camera), fixed.to_vec());
+
+        let s = self.sums.get_mut("first_primitive").unwrap();
+        s.confusion.add(gsem, &fp_sem)?;
+        s.panoptic
+            .as_mut()
+            .unwrap()
+            .add_frame(gsem, ginst, &fp_sem, &fp_inst)?;
+        self.labels_of
+            .insert(("first_primitive", c.frame, c.camera), fp_sem);
+
+        if let Some(ps) = src.pseudo.get(&key) {
+            let ps = map_u8(ps, "pseudo_labels", "labels")?;
+            self.sums
+                .get_mut("pseudo_labels")
+                .unwrap()
+                .confusion
+                .add(gsem, ps)?;
+            self.labels_of
+                .insert(("pseudo_labels", c.frame, c.camera), ps.to_vec());
+            self.pseudo_frames += 1;
+        }
+        Ok(())
+    }
+
+    /// Multi-view consistency over consecutive evaluation frames of each camera.
+    fn add_consistency(&mut self, src: &Sources, eval: &[&CameraRow], distance: f64) -> Result<()> {
+        for w in eval.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if a.camera != b.camera {
+                continue;
+            }
+            let (Some(da), Some(db)) = (
+                src.lidar_depth((a.frame, a.camera))?,
+                src.lidar_depth((b.frame, b.camera))?,
+            ) else {
+                continue;
+            };
+            for &method in METHODS {
+                let (Some(ma), Some(mb)) = (
+                    self.labels_of.get(&(method, a.frame, a.camera)),
+                    self.labels_of.get(&(method, b.frame, b.camera)),
+                ) else {
+                    continue;
+                };
+                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), distance)?;
+                self.sums
+                    .get_mut(method)
+                    .unwrap()
+                    .mc
+                    .as_mut()
+                    .unwrap()
+                    .merge(&c);
+            }
+        }
+        Ok(())
+    }
+
+    /// The `metrics` and `class_iou` tables, over `frames` evaluation images.
+    fn score_tables(&self, frames: usize) -> Result<(RecordBatch, RecordBatch)> {
+        let mut method_col = Vec::new();
+        let mut metric_col = Vec::new();
+        let mut values: Vec<Option<f64>> = Vec::new();
+        let mut push = |m: &str, k: &str, v: Option<f64>| {
+            method_col.push(m.to_string());
+            metric_col.push(k.to_string());
+            values.push(v.filter(|x| x.is_finite()));
+        };
+        let mut ciou = ClassRows::default();
+        for &method in METHODS {
+            let s = &self.sums[method];
+            let frames = if method == "pseudo_labels" {
+                self.pseudo_frames
+            } else {
+                frames
+            };
+            push(method, "frames", Some(frames as f64));
+            push(method, "pixels", Some(s.confusion.total() as f64));
+            push(method, "miou", s.confusion.miou());
+            push(method, "acc", s.confusion.accuracy());
+            let pan = s.panoptic.as_ref().map(|a| a.result());
+            let part = |f: fn(&PanopticResult) -> Option<PqSummary>| pan.as_ref().and_then(f);
+            for (prefix, summary) in [
+                ("", part(|r| r.all)),
+                ("_things", part(|r| r.things)),
+                ("_stuff", part(|r| r.stuff)),
+            ] {
+                push(method, &format!("pq{prefix}"), summary.map(|x| x.pq));
+                push(method, &format!("sq{prefix}"), summary.map(|x| x.sq));
+                push(method, &format!("rq{prefix}"), summary.map(|x| x.rq));
+            }
+            push(method, "pq_dagger", pan.as_ref().and_then(|r| r.pq_dagger));
+            push(method, "mc", s.mc.and_then(|c| c.value()));
+            let d = s.depth.as_ref().map(|d| d.result());
+            push(method, "depth_rmse", d.and_then(|d| d.rmse));
+            push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
+            ciou.push(method, &s.confusion);
+        }
+        let metrics = tables::build(
+            "metrics",
+            vec![
+                tables::strings(&method_col),
+                tables::strings(&metric_col),
+                Arc::new(Float64Array::from(values)) as ArrayRef,
+            ],
+        )?;
+        Ok((metrics, ciou.table()?))
+    }
 }
 
 impl TypedStage for Evaluate {
@@ -248,46 +547,7 @@ impl TypedStage for Evaluate {
         let cameras = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
         let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
         let bvh = Bvh::build(&prims);
-        let gt_sem_t = inputs.table("scene", "gt_semantic")?;
-        let gt_inst_t = inputs.table("scene", "gt_instance")?;
-        let pseudo_t = inputs.table("scene", "pseudo_labels")?;
-        let lidar_t = inputs.table("scene", "lidar_depth")?;
-        let maps_t = inputs.table("render", "label_maps")?;
-        let gt_sem = index_images(gt_sem_t, "gt_semantic")?;
-        let gt_inst = index_images(gt_inst_t, "gt_instance")?;
-        let pseudo = index_images(pseudo_t, "pseudo_labels")?;
-        let lidar = index_images(lidar_t, "lidar_depth")?;
-        let maps = index_images(maps_t, "label_maps")?;
-
-        let pan_cfg = PanopticConfig {
-            classes: p.classes.clone(),
-            things: p.things.clone(),
-            min_gt_segment_px: p.min_segment_px,
-            min_pred_segment_px: Some(p.min_segment_px),
-            sky_id: labels::SKY,
-        };
-        let new_sums = |panoptic: bool, depth: bool| -> Result<MethodSums> {
-            Ok(MethodSums {
-                confusion: ConfusionMatrix::new(&p.classes)?,
-                panoptic: if panoptic {
-                    Some(PanopticAccumulator::new(pan_cfg.clone())?)
-                } else {
-                    None
-                },
-                depth: if depth {
-                    Some(DepthAccumulator::new(p.max_depth)?)
-                } else {
-                    None
-                },
-                mc: Some(Consistency::default()),
-            })
-        };
-        let mut sums: BTreeMap<&str, MethodSums> = BTreeMap::new();
-        sums.insert("panoptic_nerf", new_sums(true, true)?);
-        sums.insert("fixed_field", new_sums(false, false)?);
-        sums.insert("pseudo_labels", new_sums(false, false)?);
-        sums.insert("first_primitive", new_sums(true, false)?);
-
+        let maps = Sources::new(inputs)?;
         let mut eval: Vec<&CameraRow> = cameras
             .iter()
             .filter(|c| c.eval && p.cameras.contains(&c.camera))
@@ -299,198 +559,19 @@ impl TypedStage for Evaluate {
                     .into(),
             ));
         }
-        let missing = |what: &str, c: &CameraRow| {
-            StageError::Input(format!(
-                "no `{what}` row for frame {} camera {}",
-                c.frame, c.camera
-            ))
-        };
-        // Label maps per method per evaluated image, kept for multi-view consistency.
-        let mut labels_of: BTreeMap<(&str, u32, u8), Vec<u8>> = BTreeMap::new();
-        let mut pseudo_frames = 0;
-        let mut gt_rows = GtRows::default();
+        let mut run = Evaluation::new(p)?;
         for (n, c) in eval.iter().enumerate() {
             progress.update(n as u64, eval.len() as u64, "evaluating");
-            let key = (c.frame, c.camera);
-            let g = gt_sem.get(&key).ok_or_else(|| missing("gt_semantic", c))?;
-            let gi = gt_inst.get(&key).ok_or_else(|| missing("gt_instance", c))?;
-            let m = maps.get(&key).ok_or_else(|| missing("label_maps", c))?;
-            if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
-                || (m.width, m.height) != (g.width, g.height)
-            {
-                return Err(StageError::Input(format!(
-                    "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
-                    c.frame, c.camera
-                )));
-            }
-            let gsem = map_u8(g, "gt_semantic", "labels")?;
-            let ginst = map_u16(gi, "gt_instance", "instances")?;
-            let ours = map_u8(m, "label_maps", "semantic")?;
-            let ours_inst = map_u16(m, "label_maps", "instance")?;
-            let fixed = map_u8(m, "label_maps", "fixed_semantic")?;
-            let depth = map_f32(m, "label_maps", "depth")?;
-            let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, &prims, &bvh);
-            gt_rows.frame.push(c.frame);
-            gt_rows.camera.push(c.camera);
-            gt_rows.width.push(g.width as u32);
-            gt_rows.height.push(g.height as u32);
-            gt_rows.semantic.push(gsem.to_vec());
-            gt_rows.instance.push(ginst.to_vec());
-
-            let s = sums.get_mut("panoptic_nerf").unwrap();
-            s.confusion.add(gsem, ours)?;
-            s.panoptic
-                .as_mut()
-                .unwrap()
-                .add_frame(gsem, ginst, ours, ours_inst)?;
-            if let Some(l) = lidar.get(&key) {
-                s.depth
-                    .as_mut()
-                    .unwrap()
-                    .add(depth, map_f32(l, "lidar_depth", "depth")?)?;
-            }
-            labels_of.insert(("panoptic_nerf", c.frame, c.camera), ours.to_vec());
-
-            sums.get_mut("fixed_field")
-                .unwrap()
-                .confusion
-                .add(gsem, fixed)?;
-            labels_of.insert(("fixed_field", c.frame, c.camera), fixed.to_vec());
-
-            let s = sums.get_mut("first_primitive").unwrap();
-            s.confusion.add(gsem, &fp_sem)?;
-            s.panoptic
-                .as_mut()
-                .unwrap()
-                .add_frame(gsem, ginst, &fp_sem, &fp_inst)?;
-            labels_of.insert(("first_primitive", c.frame, c.camera), fp_sem);
-
-            if let Some(ps) = pseudo.get(&key) {
-                let ps = map_u8(ps, "pseudo_labels", "labels")?;
-                sums.get_mut("pseudo_labels")
-                    .unwrap()
-                    .confusion
-                    .add(gsem, ps)?;
-                labels_of.insert(("pseudo_labels", c.frame, c.camera), ps.to_vec());
-                pseudo_frames += 1;
-            }
+            run.add_frame(&maps, c, &prims, &bvh)?;
         }
-
-        // Multi-view consistency over consecutive evaluation frames of each camera.
-        for w in eval.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            if a.camera != b.camera {
-                continue;
-            }
-            let (Some(la), Some(lb)) = (
-                lidar.get(&(a.frame, a.camera)),
-                lidar.get(&(b.frame, b.camera)),
-            ) else {
-                continue;
-            };
-            let (da, db) = (
-                map_f32(la, "lidar_depth", "depth")?,
-                map_f32(lb, "lidar_depth", "depth")?,
-            );
-            for &method in METHODS {
-                let (Some(ma), Some(mb)) = (
-                    labels_of.get(&(method, a.frame, a.camera)),
-                    labels_of.get(&(method, b.frame, b.camera)),
-                ) else {
-                    continue;
-                };
-                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), p.mc_distance)?;
-                sums.get_mut(method).unwrap().mc.as_mut().unwrap().merge(&c);
-            }
-        }
-
-        let mut method_col = Vec::new();
-        let mut metric_col = Vec::new();
-        let mut values: Vec<Option<f64>> = Vec::new();
-        let mut push = |m: &str, k: &str, v: Option<f64>| {
-            method_col.push(m.to_string());
-            metric_col.push(k.to_string());
-            values.push(v.filter(|x| x.is_finite()));
-        };
-        let mut ciou = ClassRows::default();
-        for &method in METHODS {
-            let s = &sums[method];
-            let frames = if method == "pseudo_labels" {
-                pseudo_frames
-            } else {
-                eval.len()
-            };
-            push(method, "frames", Some(frames as f64));
-            push(method, "pixels", Some(s.confusion.total() as f64));
-            push(method, "miou", s.confusion.miou());
-            push(method, "acc", s.confusion.accuracy());
-            let pan = s.panoptic.as_ref().map(|a| a.result());
-            let part =
-                |f: fn(&crate::metrics::PanopticResult) -> Option<crate::metrics::PqSummary>| {
-                    pan.as_ref().and_then(f)
-                };
-            for (prefix, summary) in [
-                ("", part(|r| r.all)),
-                ("_things", part(|r| r.things)),
-                ("_stuff", part(|r| r.stuff)),
-            ] {
-                push(method, &format!("pq{prefix}"), summary.map(|x| x.pq));
-                push(method, &format!("sq{prefix}"), summary.map(|x| x.sq));
-                push(method, &format!("rq{prefix}"), summary.map(|x| x.rq));
-            }
-            push(method, "pq_dagger", pan.as_ref().and_then(|r| r.pq_dagger));
-            push(method, "mc", s.mc.and_then(|c| c.value()));
-            let d = s.depth.as_ref().map(|d| d.result());
-            push(method, "depth_rmse", d.and_then(|d| d.rmse));
-            push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
-            for row in s.confusion.table() {
-                ciou.method.push(method.to_string());
-                ciou.label.push(row.class);
-                ciou.name
-                    .push(labels::by_id(row.class).map_or("?", |l| l.name).to_string());
-                ciou.iou.push(row.iou);
-                ciou.tp.push(row.tp);
-                ciou.fp.push(row.fp);
-                ciou.fn_.push(row.fn_);
-            }
-        }
-        let metrics = tables::build(
-            "metrics",
-            vec![
-                tables::strings(&method_col),
-                tables::strings(&metric_col),
-                Arc::new(Float64Array::from(values)) as ArrayRef,
-            ],
-        )?;
-        let class_iou = tables::build(
-            "class_iou",
-            vec![
-                tables::strings(&ciou.method),
-                tables::prim::<UInt8Type>(ciou.label),
-                tables::strings(&ciou.name),
-                Arc::new(Float64Array::from(ciou.iou)) as ArrayRef,
-                tables::prim::<UInt64Type>(ciou.tp),
-                tables::prim::<UInt64Type>(ciou.fp),
-                tables::prim::<UInt64Type>(ciou.fn_),
-            ],
-        )?;
+        run.add_consistency(&maps, &eval, p.mc_distance)?;
+        let (metrics, class_iou) = run.score_tables(eval.len())?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;
         if sequence.is_empty() {
             return Err(StageError::Input("table `scene_info` is empty".into()));
         }
-        let eval_gt = tables::build(
-            "eval_gt",
-            vec![
-                tables::strings(vec![sequence.value(0); gt_rows.frame.len()]),
-                tables::prim::<UInt32Type>(gt_rows.frame),
-                tables::prim::<UInt8Type>(gt_rows.camera),
-                tables::prim::<UInt32Type>(gt_rows.width),
-                tables::prim::<UInt32Type>(gt_rows.height),
-                tables::list::<UInt8Type>(gt_rows.semantic),
-                tables::list::<UInt16Type>(gt_rows.instance),
-            ],
-        )?;
+        let eval_gt = run.gt.table(sequence.value(0))?;
         Ok(Tables::from([
             ("metrics".to_string(), metrics),
             ("class_iou".to_string(), class_iou),

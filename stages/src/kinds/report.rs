@@ -141,79 +141,35 @@ impl<'a> Maps<'a> {
     }
 }
 
-impl TypedStage for Report {
-    type Params = ReportParams;
-    const KIND: &'static str = "report";
-    const VERSION: u32 = 2;
-    const DESCRIPTION: &'static str =
-        "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
-    const INPUTS: &'static [InputSlot] = &[
-        InputSlot {
-            name: "scene",
-            tables: &["images", "pseudo_labels", "scene_info"],
-            optional: false,
-            doc: "the scene (RGB and pseudo labels)",
-        },
-        InputSlot {
-            name: "evaluate",
-            tables: &["metrics", "class_iou", "eval_gt"],
-            optional: false,
-            doc: "metrics and the GT they were computed against",
-        },
-        InputSlot {
-            name: "render",
-            tables: &["label_maps"],
-            optional: false,
-            doc: "rendered labels",
-        },
-        InputSlot {
-            name: "train",
-            tables: &["train_log"],
-            optional: true,
-            doc: "training log for the loss curves",
-        },
-    ];
-    const OUTPUTS: &'static [&'static str] = &["report_files"];
+/// The report page being written, as Markdown and HTML side by side.
+struct Page {
+    md: String,
+    html: String,
+}
 
-    fn validate(p: &ReportParams) -> Result<()> {
-        if p.zoom == 0 || p.zoom > 8 {
-            return Err(StageError::Params("`zoom` must be 1..=8".into()));
-        }
-        if p.depth_range.is_nan() || p.depth_range <= 0.0 {
-            return Err(StageError::Params("`depth_range` must be positive".into()));
-        }
-        Ok(())
-    }
-
-    fn run(&self, p: &ReportParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let metrics_t = inputs.table("evaluate", "metrics")?;
-        let class_t = inputs.table("evaluate", "class_iou")?;
-        let gt_t = inputs.table("evaluate", "eval_gt")?;
-        let info = inputs.table("scene", "scene_info")?;
-        let scene_name = tables::get_strings(info, "scene_info", "name")?;
-        let scene_name = if scene_name.is_empty() {
-            "?"
-        } else {
-            scene_name.value(0)
-        };
-        let metrics = metric_map(metrics_t)?;
-
-        let mut md = format!("# {}\n\nScene: `{scene_name}`\n\n", p.title);
+impl Page {
+    fn new(title: &str, scene_name: &str) -> Self {
+        let md = format!("# {title}\n\nScene: `{scene_name}`\n\n");
         let mut html = String::new();
         let _ = write!(
-            html,
-            "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{}</title><style>\
-             body{{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}}\
-             table{{border-collapse:collapse;margin:8px 0 20px}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}\
-             th{{background:#f3f3f3}}td:first-child,th:first-child{{text-align:left}}tr.ours td{{font-weight:bold;background:#eef6ee}}\
-             .frames{{width:100%;table-layout:fixed}}.frames td{{border:none;padding:2px;text-align:center;vertical-align:top}}.frames td:first-child{{width:56px}}.frames img{{image-rendering:pixelated;display:block;width:100%;height:auto}}\
-             .cap{{font-size:12px;color:#555}}.legend span{{display:inline-block;margin:2px 8px 2px 0;font-size:12px}}\
-             .legend i{{display:inline-block;width:12px;height:12px;margin-right:4px;vertical-align:middle;border:1px solid #999}}\
-             </style></head><body><h1>{}</h1><p>Scene <code>{scene_name}</code>. Metrics on the evaluation frames \
-             (semantic metrics and PQ in %, depth RMSE in metres; – = not applicable).</p>",
-            p.title, p.title
-        );
+        html,
+        "<!DOCTYPE html><html><head><meta charset=\"utf-8\"><title>{}</title><style>\
+         body{{font-family:sans-serif;margin:24px;color:#222;max-width:1500px}}\
+         table{{border-collapse:collapse;margin:8px 0 20px}}td,th{{border:1px solid #ccc;padding:4px 8px;text-align:right}}\
+         th{{background:#f3f3f3}}td:first-child,th:first-child{{text-align:left}}tr.ours td{{font-weight:bold;background:#eef6ee}}\
+         .frames{{width:100%;table-layout:fixed}}.frames td{{border:none;padding:2px;text-align:center;vertical-align:top}}.frames td:first-child{{width:56px}}.frames img{{image-rendering:pixelated;display:block;width:100%;height:auto}}\
+         .cap{{font-size:12px;color:#555}}.legend span{{display:inline-block;margin:2px 8px 2px 0;font-size:12px}}\
+         .legend i{{display:inline-block;width:12px;height:12px;margin-right:4px;vertical-align:middle;border:1px solid #999}}\
+         </style></head><body><h1>{}</h1><p>Scene <code>{scene_name}</code>. Metrics on the evaluation frames \
+         (semantic metrics and PQ in %, depth RMSE in metres; – = not applicable).</p>",
+        title, title
+    );
+        Page { md, html }
+    }
 
+    /// The main table: methods x metrics.
+    fn metrics(&mut self, metrics: &BTreeMap<String, BTreeMap<String, Option<f64>>>) {
+        let (md, html) = (&mut self.md, &mut self.html);
         // Main table.
         let mut head = "| method |".to_string();
         let mut sep = "|---|".to_string();
@@ -248,7 +204,11 @@ impl TypedStage for Report {
             html.push_str("</tr>");
         }
         html.push_str("</table>");
+    }
 
+    /// Per-class IoU: classes x methods. Returns the label ids present, ascending.
+    fn class_iou(&mut self, class_t: &RecordBatch) -> Result<Vec<u8>> {
+        let (md, html) = (&mut self.md, &mut self.html);
         // Per-class IoU: classes x methods.
         let cm = tables::get_strings(class_t, "class_iou", "method")?;
         let cn = tables::get_strings(class_t, "class_iou", "name")?;
@@ -275,10 +235,10 @@ impl TypedStage for Report {
             let c = labels::color(*id);
             let _ = write!(md, "| {name} |");
             let _ = write!(
-                html,
-                "<tr><td><i style=\"display:inline-block;width:10px;height:10px;background:rgb({},{},{});margin-right:6px\"></i>{name}</td>",
-                c[0], c[1], c[2]
-            );
+            html,
+            "<tr><td><i style=\"display:inline-block;width:10px;height:10px;background:rgb({},{},{});margin-right:6px\"></i>{name}</td>",
+            c[0], c[1], c[2]
+        );
             for &m in METHODS {
                 let v = fmt_value(vals.get(m).copied().flatten(), 100.0, 1);
                 let _ = write!(md, " {v} |");
@@ -288,30 +248,34 @@ impl TypedStage for Report {
             html.push_str("</tr>");
         }
         html.push_str("</table>");
+        let mut present: Vec<u8> = per_class.keys().map(|(id, _)| *id).collect();
+        present.dedup();
+        Ok(present)
+    }
 
-        // Training curves.
-        if let Some(log) = inputs.optional_table("train", "train_log")? {
-            if let Some(svg) = training_svg(log)? {
-                html.push_str("<h2>Training</h2>");
-                html.push_str(&svg);
-            }
-        }
-
+    /// Per evaluation frame a row of pictures.
+    fn pictures(
+        &mut self,
+        p: &ReportParams,
+        inputs: &Inputs,
+        present: &[u8],
+        progress: &dyn Progress,
+    ) -> Result<()> {
+        let html = &mut self.html;
         // Pictures.
         let images = Maps::new(inputs.table("scene", "images")?, "images")?;
         let pseudo = Maps::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
         let maps = Maps::new(inputs.table("render", "label_maps")?, "label_maps")?;
+        let gt_t = inputs.table("evaluate", "eval_gt")?;
         let gt = Maps::new(gt_t, "eval_gt")?;
         let gw = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "width")?;
         let gh = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "height")?;
         html.push_str(
-            "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
-             ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
-             (yellow near, purple far).</p><div class=\"legend\">",
-        );
-        let mut present: Vec<u8> = per_class.keys().map(|(id, _)| *id).collect();
-        present.dedup();
-        for id in present {
+        "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
+         ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
+         (yellow near, purple far).</p><div class=\"legend\">",
+    );
+        for &id in present {
             let c = labels::color(id);
             let _ = write!(
                 html,
@@ -364,11 +328,77 @@ impl TypedStage for Report {
             }
             html.push_str("</tr>");
         }
-        html.push_str("</table></body></html>\n");
-        md.push_str("\nPictures and training curves: see report.html.\n");
+        Ok(())
+    }
+}
 
+impl TypedStage for Report {
+    type Params = ReportParams;
+    const KIND: &'static str = "report";
+    const VERSION: u32 = 2;
+    const DESCRIPTION: &'static str =
+        "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
+    const INPUTS: &'static [InputSlot] = &[
+        InputSlot {
+            name: "scene",
+            tables: &["images", "pseudo_labels", "scene_info"],
+            optional: false,
+            doc: "the scene (RGB and pseudo labels)",
+        },
+        InputSlot {
+            name: "evaluate",
+            tables: &["metrics", "class_iou", "eval_gt"],
+            optional: false,
+            doc: "metrics and the GT they were computed against",
+        },
+        InputSlot {
+            name: "render",
+            tables: &["label_maps"],
+            optional: false,
+            doc: "rendered labels",
+        },
+        InputSlot {
+            name: "train",
+            tables: &["train_log"],
+            optional: true,
+            doc: "training log for the loss curves",
+        },
+    ];
+    const OUTPUTS: &'static [&'static str] = &["report_files"];
+
+    fn validate(p: &ReportParams) -> Result<()> {
+        if p.zoom == 0 || p.zoom > 8 {
+            return Err(StageError::Params("`zoom` must be 1..=8".into()));
+        }
+        if p.depth_range.is_nan() || p.depth_range <= 0.0 {
+            return Err(StageError::Params("`depth_range` must be positive".into()));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &ReportParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let info = inputs.table("scene", "scene_info")?;
+        let scene_name = tables::get_strings(info, "scene_info", "name")?;
+        let scene_name = if scene_name.is_empty() {
+            "?"
+        } else {
+            scene_name.value(0)
+        };
+        let mut page = Page::new(&p.title, scene_name);
+        page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
+        let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
+        if let Some(log) = inputs.optional_table("train", "train_log")? {
+            if let Some(svg) = training_svg(log)? {
+                page.html.push_str("<h2>Training</h2>");
+                page.html.push_str(&svg);
+            }
+        }
+        page.pictures(p, inputs, &present, progress)?;
+        page.html.push_str("</table></body></html>\n");
+        page.md
+            .push_str("\nPictures and training curves: see report.html.\n");
         let names = vec!["report.html".to_string(), "REPORT.md".to_string()];
-        let contents = vec![html.into_bytes(), md.into_bytes()];
+        let contents = vec![page.html.into_bytes(), page.md.into_bytes()];
         let t = tables::build(
             "report_files",
             vec![tables::strings(&names), tables::binary(&contents)],

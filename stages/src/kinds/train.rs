@@ -110,7 +110,7 @@ impl TypedStage for Train {
     const BUDGET_PARAM: Option<&'static str> = Some("train.iterations");
 
     fn validate(p: &TrainParams) -> Result<()> {
-        p.train.validate().map_err(StageError::Params)?;
+        p.train.validate()?;
         p.sampling.validate()?;
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
             return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));

@@ -6,7 +6,12 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::error::ModelError;
 use super::loss::LossTerm;
+
+fn invalid(message: impl Into<String>) -> ModelError {
+    ModelError::Param(message.into())
+}
 
 /// Which position encoding the field uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -72,15 +77,19 @@ impl GridConfig {
     }
 
     /// Checks the ranges; errors name the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ModelError> {
         if self.levels == 0 || self.features_per_level == 0 {
-            return Err("grid.levels and grid.features_per_level must be >= 1".into());
+            return Err(invalid(
+                "grid.levels and grid.features_per_level must be >= 1",
+            ));
         }
         if !(4..=24).contains(&self.log2_table_size) {
-            return Err("grid.log2_table_size must be in 4..=24".into());
+            return Err(invalid("grid.log2_table_size must be in 4..=24"));
         }
         if self.base_resolution == 0 || self.max_resolution < self.base_resolution {
-            return Err("grid.base_resolution must be >= 1 and <= grid.max_resolution".into());
+            return Err(invalid(
+                "grid.base_resolution must be >= 1 and <= grid.max_resolution",
+            ));
         }
         Ok(())
     }
@@ -151,18 +160,18 @@ impl FieldConfig {
     }
 
     /// Checks ranges; errors name the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ModelError> {
         if self.encoding == EncodingKind::Grid {
             self.grid.validate()?;
         }
         if self.hidden == 0 || self.geo_features == 0 {
-            return Err("field.hidden and field.geo_features must be >= 1".into());
+            return Err(invalid("field.hidden and field.geo_features must be >= 1"));
         }
         if self.pe_position_frequencies > 20 || self.pe_direction_frequencies > 20 {
-            return Err("field.pe_*_frequencies must be <= 20".into());
+            return Err(invalid("field.pe_*_frequencies must be <= 20"));
         }
         if !self.density_shift.is_finite() {
-            return Err("field.density_shift must be finite".into());
+            return Err(invalid("field.density_shift must be finite"));
         }
         Ok(())
     }
@@ -189,23 +198,23 @@ impl FieldSpec {
     }
 
     /// Checks the spec; errors name the field.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ModelError> {
         self.config.validate()?;
         if self.num_classes < 2 {
-            return Err(format!(
+            return Err(invalid(format!(
                 "num_classes is {}; need at least one scene class plus sky",
                 self.num_classes
-            ));
+            )));
         }
         for a in 0..3 {
             if self.aabb_max[a] <= self.aabb_min[a]
                 || !self.aabb_min[a].is_finite()
                 || !self.aabb_max[a].is_finite()
             {
-                return Err(format!(
+                return Err(invalid(format!(
                     "aabb axis {a}: min {} must be < max {} and finite",
                     self.aabb_min[a], self.aabb_max[a]
-                ));
+                )));
             }
         }
         Ok(())
@@ -336,43 +345,46 @@ impl Default for TrainConfig {
 
 impl TrainConfig {
     /// Checks ranges; errors name the parameter.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), ModelError> {
         self.field.validate()?;
         for t in LossTerm::ALL {
             let w = self.losses.get(t);
             if !(w.is_finite() && w >= 0.0) {
-                return Err(format!("losses.{} = {w} must be finite and >= 0", t.name()));
+                return Err(invalid(format!(
+                    "losses.{} = {w} must be finite and >= 0",
+                    t.name()
+                )));
             }
         }
         if self.losses.enabled().is_empty() {
-            return Err("every loss weight is 0: nothing to optimise".into());
+            return Err(invalid("every loss weight is 0: nothing to optimise"));
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            return Err(format!("lr = {} must be > 0", self.lr));
+            return Err(invalid(format!("lr = {} must be > 0", self.lr)));
         }
         if !(self.lr_final_factor.is_finite() && self.lr_final_factor > 0.0) {
-            return Err(format!(
+            return Err(invalid(format!(
                 "lr_final_factor = {} must be > 0",
                 self.lr_final_factor
-            ));
+            )));
         }
         if !(self.grad_clip_norm.is_finite() && self.grad_clip_norm >= 0.0) {
-            return Err(format!(
+            return Err(invalid(format!(
                 "grad_clip_norm = {} must be >= 0",
                 self.grad_clip_norm
-            ));
+            )));
         }
         if !(0.0..1.0).contains(&self.adam_beta1) || !(0.0..1.0).contains(&self.adam_beta2) {
-            return Err("adam_beta1 and adam_beta2 must be in [0, 1)".into());
+            return Err(invalid("adam_beta1 and adam_beta2 must be in [0, 1)"));
         }
         if !(self.adam_epsilon.is_finite() && self.adam_epsilon > 0.0) {
-            return Err("adam_epsilon must be > 0".into());
+            return Err(invalid("adam_epsilon must be > 0"));
         }
         if self.rays_per_batch == 0 {
-            return Err("rays_per_batch must be >= 1".into());
+            return Err(invalid("rays_per_batch must be >= 1"));
         }
         if !(self.sigma_threshold.is_finite() && self.sigma_threshold >= 0.0) {
-            return Err("sigma_threshold must be finite and >= 0".into());
+            return Err(invalid("sigma_threshold must be finite and >= 0"));
         }
         Ok(())
     }
@@ -403,7 +415,7 @@ mod tests {
             lr: -1.0,
             ..Default::default()
         };
-        assert!(bad.validate().unwrap_err().contains("lr"));
+        assert!(bad.validate().unwrap_err().to_string().contains("lr"));
     }
 
     #[test]

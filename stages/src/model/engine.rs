@@ -89,7 +89,7 @@ impl Engine {
             config: config.field.clone(),
             ..spec
         };
-        spec.validate().map_err(TrainError::Config)?;
+        spec.validate()?;
         let rows = params::initial(&spec);
         self.trainer_from(config, spec, rows)
     }
@@ -101,8 +101,8 @@ impl Engine {
         spec: FieldSpec,
         weights: Vec<NamedWeight>,
     ) -> Result<Box<dyn Trainer>, TrainError> {
-        config.validate().map_err(TrainError::Config)?;
-        spec.validate().map_err(TrainError::Config)?;
+        config.validate()?;
+        spec.validate()?;
         if spec.config != config.field {
             return Err(TrainError::Config(
                 "the field spec's config differs from `train.field`".into(),

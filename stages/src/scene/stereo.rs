@@ -13,7 +13,6 @@
 //! a sweep over rows where every pixel of a row depends only on the previous row (rayon over
 //! the row's pixels). Memory: the aggregated volume is `w * h * max_disparity` u16.
 
-
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -416,8 +415,7 @@ mod tests {
         let gt_t = &t["gt_depth"];
         let gk = crate::scene::io::image_keys(gt_t, "gt_depth").unwrap();
         let gt = tables::get_list::<Float32Type>(gt_t, "gt_depth", "depth").unwrap();
-        let sk = crate::scene::io::image_keys(&out["stereo_depth"], "stereo_depth")
-            .unwrap();
+        let sk = crate::scene::io::image_keys(&out["stereo_depth"], "stereo_depth").unwrap();
         let (mut n_near, mut sq_near) = (0usize, 0f64);
         let (mut n, mut total, mut abs_rel, mut sq, mut within) =
             (0usize, 0usize, 0f64, 0f64, 0usize);

@@ -17,7 +17,6 @@
 //! Cost (2 cores, dev profile with optimised dependencies): the default scene takes 0.35-0.9 s;
 //! full KITTI-360 size (`scale` 1, 1408x376) about 0.7 s per image.
 
-
 use arrow::datatypes::{Float32Type, Float64Type, UInt16Type, UInt32Type, UInt8Type};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};

@@ -3,7 +3,6 @@
 
 use std::path::{Path, PathBuf};
 
-
 use crate::geometry::{self, Bvh, CameraRow};
 use crate::intervals::{first_hit_images, plan_image, plans_to_table, IntersectParams};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};

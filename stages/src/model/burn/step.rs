@@ -288,12 +288,12 @@ impl Trainer {
     /// A fresh field from `spec` (its `config` is replaced by `config.field`) on the autodiff
     /// device of `backend`.
     pub fn new(config: TrainConfig, spec: FieldSpec, backend: Backend) -> Result<Self, TrainError> {
-        config.validate().map_err(TrainError::Config)?;
+        config.validate()?;
         let spec = FieldSpec {
             config: config.field.clone(),
             ..spec
         };
-        spec.validate().map_err(TrainError::Config)?;
+        spec.validate()?;
         let field = RadianceField::init(spec, &backend.train_device());
         Ok(Self::from_field(config, field))
     }

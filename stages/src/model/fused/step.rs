@@ -153,7 +153,9 @@ impl Work {
         }
     }
 
-    /// Backward pass of rays `r0..r1` into this partition's gradients.
+    /// Backward pass of rays `r0..r1` into this partition's gradients: through rendering and
+    /// the losses ([`Work::backward_rays`]), then the heads and the trunk
+    /// ([`Work::backward_field`]).
     #[allow(clippy::too_many_arguments)]
     pub(super) fn backward_step(
         &mut self,
@@ -170,11 +172,36 @@ impl Work {
         if r1 == r0 {
             return;
         }
+        self.backward_rays(f, batch, r0, r1, heads, config, sky, scale);
+        self.backward_field(
+            f,
+            params,
+            batch.samples.samples,
+            batch.samples.classes,
+            r1 - r0,
+            heads,
+        );
+    }
+
+    /// Gradients of the weighted losses with respect to each sample's density (into the first
+    /// column of `dtrunk`), logits (`dz`) and colour (`drgb`).
+    #[allow(clippy::too_many_arguments)]
+    fn backward_rays(
+        &mut self,
+        f: &FusedField,
+        batch: &RayBatch,
+        r0: usize,
+        r1: usize,
+        heads: Heads,
+        config: &TrainConfig,
+        sky: usize,
+        scale: &Scale,
+    ) {
         let s = &batch.samples;
         let t = &batch.targets;
         let (ns, c) = (s.samples, s.classes);
         let spec_c = &f.spec.config;
-        let (g, width) = (spec_c.geo_features, 1 + spec_c.geo_features);
+        let width = 1 + spec_c.geo_features;
         let p0 = r0 * ns;
         let n = (r1 - r0) * ns;
         let w = &scale.weights;
@@ -265,6 +292,22 @@ impl Work {
                 self.dtrunk[li * width] = d_optical * s.deltas[p0 + li] * self.dsigma[li];
             }
         }
+    }
+
+    /// The heads and the trunk backwards, from the per-sample gradients of `backward_rays` to
+    /// the parameters and the encoding (`denc`) of `rays` rays of `ns` samples and `c` classes.
+    fn backward_field(
+        &mut self,
+        f: &FusedField,
+        params: &[&[f32]],
+        ns: usize,
+        c: usize,
+        rays: usize,
+        heads: Heads,
+    ) {
+        let spec_c = &f.spec.config;
+        let (g, width) = (spec_c.geo_features, 1 + spec_c.geo_features);
+        let n = rays * ns;
         let trunk_out_idx = f.trunk.len() - 1;
         // Heads back to the geometry features.
         grow(&mut self.dgeo, n * g);
@@ -293,7 +336,6 @@ impl Work {
         if heads.rgb {
             let l0 = f.colour[0];
             let h = l0.outputs;
-            let rays = r1 - r0;
             let dd = self.dir_pe.len() / rays;
             // dcol: gradient of the first colour layer's pre-activation
             grow(&mut self.dcol, n * h);

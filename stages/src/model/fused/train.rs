@@ -32,7 +32,7 @@ pub struct FusedTrainer {
 impl FusedTrainer {
     /// Starts from the initial parameters of `field` (same seed => same start as burn).
     pub fn new(config: TrainConfig, field: FusedField) -> Result<Self, TrainError> {
-        config.validate().map_err(TrainError::Config)?;
+        config.validate()?;
         let zeros: Vec<Vec<f32>> = field
             .weights
             .iter()

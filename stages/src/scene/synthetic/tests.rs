@@ -7,8 +7,8 @@ use std::time::Instant;
 use glam::DVec3;
 
 use super::*;
-use crate::kinds::synthetic_scene::SyntheticScene;
 use crate::geometry::Primitive;
+use crate::kinds::synthetic_scene::SyntheticScene;
 use crate::labels::{BUILDING, CAR, PARKING, SIDEWALK, VEGETATION};
 use crate::{NoProgress, Stage};
 
@@ -474,8 +474,8 @@ fn export_writes_the_kitti360_layout() {
 
 #[test]
 fn local_meshes_are_closed_and_outward() {
-    use crate::scene::kitti360_export::local_mesh;
     use crate::geometry::Shape;
+    use crate::scene::kitti360_export::local_mesh;
     let shapes = [
         Shape::Cuboid,
         Shape::Ellipsoid,
@@ -541,8 +541,8 @@ fn the_rig_is_a_rectified_stereo_pair_looking_down_the_street() {
 
 #[test]
 fn exported_meshes_match_the_primitives() {
-    use crate::scene::kitti360_export::local_mesh;
     use crate::geometry::Shape;
+    use crate::scene::kitti360_export::local_mesh;
     let (_, g) = default_scene();
     let mut r = rng::Rng::new(9, rng::Purpose::Layout, &[]);
     for (i, p) in g.layout.bounds.iter().enumerate() {
