@@ -8,12 +8,13 @@ use std::path::{Path, PathBuf};
 use arrow::datatypes::{Float64Type, UInt32Type, UInt8Type};
 
 use super::*;
-use crate::geometry::{cameras_from_table, primitives_from_table};
-use crate::scene::kitti360_export::{self, LIDAR_DEPTH_TOLERANCE, STEREO_DEPTH_TOLERANCE_M};
+use crate::geometry::{cameras_from_table, primitives_from_table, Shape};
 use crate::kinds::kitti360_scene::Kitti360Scene;
 use crate::kinds::synthetic_scene::SyntheticScene;
-use crate::Inputs;
+use crate::labels;
+use crate::scene::kitti360_export::{self, LIDAR_DEPTH_TOLERANCE, STEREO_DEPTH_TOLERANCE_M};
 use crate::scene::synthetic::SceneParams;
+use crate::Inputs;
 use crate::{NoProgress, Stage};
 
 fn repo() -> PathBuf {
@@ -457,8 +458,11 @@ fn lidar_scans_project_into_the_left_camera() {
 /// Exports the default synthetic scene in the KITTI-360 layout and loads it back.
 fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
     let sp = SceneParams::default();
-    let synth =
-        crate::scene::synthetic::to_tables(&sp, &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap()).unwrap();
+    let synth = crate::scene::synthetic::to_tables(
+        &sp,
+        &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
+    )
+    .unwrap();
     let root = temp(&format!("roundtrip-{tag}"));
     kitti360_export::write(&synth, &root).unwrap();
     let p = Kitti360Params {
