@@ -1,4 +1,4 @@
-//! The inputs of [`RaySet::build`](super::RaySet): per-image tables indexed by (frame, camera),
+//! The inputs of `RaySet::build`: per-image tables indexed by (frame, camera),
 //! the columns of `ray_intervals`, and one row of it read together with its camera and
 //! targets, every length checked, so building the rays never indexes out of bounds.
 

@@ -4,9 +4,9 @@
 use std::collections::BTreeMap;
 
 use crate::geometry::{DAffine3, DMat3, DVec3, Primitive, Shape};
+use crate::scene::rng::Rng;
 
 use super::parts::{box_tf, hull_points, mat, ngon, Material, Pattern};
-use crate::scene::rng::Rng;
 
 /// Which convex shape a bounding primitive takes.
 #[derive(Clone, Copy, PartialEq)]
@@ -15,13 +15,19 @@ pub(super) enum BoundShape {
     Ellipsoid,
 }
 
+/// The scene under construction (what becomes a [`super::Layout`]) with its random streams.
 pub(super) struct Builder {
     pub(super) parts: Vec<Primitive>,
+    /// `materials[i]` is the look of `parts[i]`.
     pub(super) materials: Vec<Material>,
     pub(super) bounds: Vec<Primitive>,
+    /// The last instance number given out, per class.
     pub(super) instances: BTreeMap<u8, u32>,
+    /// Classes that may appear (label ids).
     pub(super) classes: Vec<u8>,
+    /// Layout choices; `build` gives each side's lots and parking strip their own stream.
     pub(super) rng: Rng,
+    /// The annotation jitter of every bound, one stream for the whole street.
     pub(super) brng: Rng,
 }
 

@@ -3,13 +3,13 @@
 
 use crate::geometry::DVec3;
 use crate::labels::{PARKING, ROAD, SIDEWALK, TERRAIN};
+use crate::scene::rng::{Purpose, Rng};
 
 use super::builder::Builder;
 use super::parts::{mat, Pattern};
 use super::section::{
     GARDEN_OUTER, GARDEN_TOP, KERB, PARKING_OUTER, ROAD_HALF, SIDEWALK_OUTER, VERGE_OUTER,
 };
-use crate::scene::rng::{Purpose, Rng};
 
 /// The true ground along the street from `x0` to `x1`: the road, parking strips (`parking`:
 /// their class, road where parking is not a class), planted verges, raised sidewalks

@@ -5,9 +5,10 @@
 //!
 //! Scene frame: x along the street (the rig drives towards +x), y to the left, z up; the road
 //! surface is z = 0. Cross-section (|y|, both sides): road [0, 4], parking strip [4, 6.2],
-//! planted verge [6.2, 7.2] (terrain, street trees), raised sidewalk [7.2, 9] (kerb 0.12 m), gardens (terrain) from 9 with hedges, walls,
-//! fences and gates along |y| = 9.3, then buildings with facades at |y| = 12.5..15 and gaps
-//! with trees; beyond |y| = 45 and past the street's ends, open terrain.
+//! planted verge [6.2, 7.2] (terrain, street trees), raised sidewalk [7.2, 9] (kerb 0.12 m),
+//! gardens (terrain) from 9 with hedges, walls, fences and gates along |y| = 9.3, then
+//! buildings with facades at |y| = 12.5..15 and gaps with trees; beyond |y| = 45 and past the
+//! street's ends, open terrain.
 //!
 //! The builders, by what they place: `ground` (the cross-section's slabs and their stuff
 //! bounds), `lots` (frontages, garden fences, buildings or gardens, street trees and boxes along
@@ -60,7 +61,9 @@ pub struct LayoutParams {
     pub classes: Vec<u8>,
 }
 
-/// Builds the scene. Deterministic in `p`.
+/// Builds the scene. Deterministic in `p`: the ground's parts, its stuff bounds, then each
+/// side's lots and parked vehicles, always in this order (the bounds' order is the
+/// `primitives` table's row order, and every bound draws from one jitter stream).
 pub fn build(p: &LayoutParams) -> Layout {
     let x0 = -30.0;
     let x1 = p.street_length + 70.0;

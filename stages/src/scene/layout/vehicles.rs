@@ -2,10 +2,10 @@
 
 use crate::geometry::{DMat3, DVec3};
 use crate::labels::{CAR, CARAVAN, TRAILER};
+use crate::scene::rng::Rng;
 
 use super::builder::{BoundShape, Builder};
 use super::parts::{mat, Pattern};
-use crate::scene::rng::Rng;
 
 const CAR_COLOURS: &[[f64; 3]] = &[
     [0.7, 0.1, 0.1],
