@@ -10,18 +10,18 @@
 //! The `uniform` mode (ablation) samples [near, far] evenly and ignores the intervals for
 //! placement (but not for the fixed fields).
 
-use std::collections::HashMap;
+mod inputs;
 
 use rayon::prelude::*;
 
-use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{self, Primitive};
 use crate::intervals::{plan_image, IntersectParams};
+use crate::labels;
 use crate::rng::SplitMix64;
 use crate::stage::{Inputs, Result, StageError};
-use crate::{labels, tables};
+use inputs::{ImageRays, ImageRows, RayRows};
 
 /// Index meaning "no class / no label".
 pub const NONE: u16 = u16::MAX;
@@ -138,22 +138,6 @@ pub struct RaySet {
     pub bounds_max: [f32; 3],
 }
 
-struct ImageRows<'a> {
-    index: HashMap<(u32, u8), usize>,
-    batch: &'a arrow::record_batch::RecordBatch,
-    table: &'static str,
-}
-
-impl<'a> ImageRows<'a> {
-    fn new(batch: &'a arrow::record_batch::RecordBatch, table: &'static str) -> Result<Self> {
-        Ok(Self {
-            index: tables::frame_camera_index(batch, table)?,
-            batch,
-            table,
-        })
-    }
-}
-
 impl RaySet {
     /// Builds the ray set of the images the `rays` input covers, from the `scene` and `rays`
     /// inputs. Images without pseudo labels (right camera) get [`NONE`] labels.
@@ -175,6 +159,8 @@ impl RaySet {
         Self::build(&cams, &prims, &images, &pseudo, stereo.as_ref(), rays_t)
     }
 
+    /// The ray set of the `ray_intervals` rows: the per-primitive part, then each row's
+    /// image, checked against its camera and targets, with one ray per pixel.
     fn build(
         cams: &[geometry::CameraRow],
         prims: &[Primitive],
@@ -183,7 +169,19 @@ impl RaySet {
         stereo: Option<&ImageRows>,
         rays_t: &arrow::record_batch::RecordBatch,
     ) -> Result<RaySet> {
-        // Primitive classes ascending, then sky last (the fields' convention).
+        let mut set = Self::over_primitives(prims);
+        let rows = RayRows::of(rays_t)?;
+        for r in 0..rays_t.num_rows() {
+            let img = ImageRays::read(&rows, r, cams, prims.len(), images, pseudo, stereo)?;
+            set.push_image(&img);
+        }
+        Ok(set)
+    }
+
+    /// An empty ray set over `prims`: the classes (primitive classes ascending, then sky last,
+    /// the fields' convention), the thing instances, each primitive's class and thing, and the
+    /// primitives' bounds.
+    fn over_primitives(prims: &[Primitive]) -> RaySet {
         let mut classes: Vec<u8> = prims
             .iter()
             .map(|p| p.label)
@@ -192,12 +190,6 @@ impl RaySet {
         classes.sort_unstable();
         classes.dedup();
         classes.push(labels::SKY);
-        let class_index = |l: u8| {
-            classes
-                .iter()
-                .position(|&c| c == l)
-                .map_or(NONE, |i| i as u16)
-        };
         let mut things: Vec<(u8, u32)> = prims
             .iter()
             .filter(|p| p.instance > 0)
@@ -206,7 +198,10 @@ impl RaySet {
         things.sort_unstable();
         things.dedup();
         let mut set = RaySet {
-            prim_class: prims.iter().map(|p| class_index(p.label)).collect(),
+            prim_class: prims
+                .iter()
+                .map(|p| class_index(&classes, p.label))
+                .collect(),
             prim_thing: prims
                 .iter()
                 .map(|p| {
@@ -234,151 +229,72 @@ impl RaySet {
         set.bounds_min = lo.map(|v| v as f32);
         set.bounds_max = hi.map(|v| v as f32);
         set.offsets.push(0);
+        set
+    }
 
-        let t = "ray_intervals";
-        let frames = tables::get_prim::<UInt32Type>(rays_t, t, "frame")?;
-        let cam_ids = tables::get_prim::<UInt8Type>(rays_t, t, "camera")?;
-        let hits = tables::get_list::<UInt8Type>(rays_t, t, "hits")?;
-        let t_in = tables::get_list::<Float32Type>(rays_t, t, "t_in")?;
-        let t_out = tables::get_list::<Float32Type>(rays_t, t, "t_out")?;
-        let prim = tables::get_list::<UInt32Type>(rays_t, t, "prim")?;
-        let sky0 = tables::get_list::<Float32Type>(rays_t, t, "sky_t0")?;
-        let sky1 = tables::get_list::<Float32Type>(rays_t, t, "sky_t1")?;
-        for r in 0..rays_t.num_rows() {
-            let key = (frames[r], cam_ids[r]);
-            let cam = cams
-                .iter()
-                .find(|c| (c.frame, c.camera) == key)
-                .ok_or_else(|| {
-                    StageError::Input(format!(
-                        "ray_intervals row {r}: frame {} camera {} is not in `cameras`",
-                        key.0, key.1
-                    ))
-                })?;
-            let (w, h) = (cam.cam.width, cam.cam.height);
-            let n = (w * h) as usize;
-            let hits = hits.row(r);
-            if hits.len() != n || sky0.row(r).len() != n || sky1.row(r).len() != n {
-                return Err(StageError::Input(format!(
-                    "ray_intervals row {r}: per-pixel arrays do not have {w}x{h} entries"
-                )));
-            }
-            let total: usize = hits.iter().map(|&h| h as usize).sum();
-            let (ti, to, pr) = (t_in.row(r), t_out.row(r), prim.row(r));
-            if ti.len() != total || to.len() != total || pr.len() != total {
-                return Err(StageError::Input(format!(
-                    "ray_intervals row {r}: {} intervals listed but hits sum to {total}",
-                    ti.len()
-                )));
-            }
-            if let Some(&bad) = pr.iter().find(|&&p| p as usize >= prims.len()) {
-                return Err(StageError::Input(format!(
-                    "ray_intervals row {r}: primitive id {bad} is not in `primitives` ({} rows)",
-                    prims.len()
-                )));
-            }
-            let rgb = images
-                .index
-                .get(&key)
-                .map(|&i| tables::get_binary(images.batch, images.table, "rgb").map(|b| b.value(i)))
-                .transpose()?
-                .ok_or_else(|| {
-                    StageError::Input(format!(
-                        "no `images` row for frame {} camera {}",
-                        key.0, key.1
-                    ))
-                })?;
-            if rgb.len() != n * 3 {
-                return Err(StageError::Input(format!(
-                    "images: frame {} camera {} has {} bytes, expected {w}x{h}x3",
-                    key.0,
-                    key.1,
-                    rgb.len()
-                )));
-            }
-            let labels_row = pseudo
-                .index
-                .get(&key)
-                .map(|&i| {
-                    tables::get_list::<UInt8Type>(pseudo.batch, pseudo.table, "labels")
-                        .map(|l| l.row(i))
-                })
-                .transpose()?;
-            let depth_row = match stereo {
-                Some(s) => s
-                    .index
-                    .get(&key)
-                    .map(|&i| {
-                        tables::get_list::<Float32Type>(s.batch, s.table, "depth").map(|l| l.row(i))
-                    })
-                    .transpose()?,
-                None => None,
-            };
-            for (what, len) in [
-                ("pseudo_labels", labels_row.map(<[u8]>::len)),
-                ("stereo_depth", depth_row.map(<[f32]>::len)),
-            ] {
-                if let Some(len) = len {
-                    if len != n {
-                        return Err(StageError::Input(format!(
-                            "{what}: frame {} camera {} has {len} values, expected {w}x{h}",
-                            key.0, key.1
-                        )));
-                    }
+    /// Appends the image of `img` and its rays (one per pixel, row-major) with their intervals
+    /// and targets.
+    fn push_image(&mut self, img: &ImageRays) {
+        let cam = img.cam;
+        let (w, h) = (cam.cam.width, cam.cam.height);
+        let n = (w * h) as usize;
+        self.images.push(ImageInfo {
+            frame: cam.frame,
+            camera: cam.camera,
+            width: w,
+            height: h,
+            first_ray: self.origin.len(),
+            cam: cam.cam.clone(),
+        });
+        let (hits, ti, to, pr) = (img.hits, img.t_in, img.t_out, img.prim);
+        let (sky0, sky1) = (img.sky_t0, img.sky_t1);
+        let (rgb, labels_row, depth_row) = (img.targets.rgb, img.targets.labels, img.targets.depth);
+        let origin = cam.cam.centre();
+        let mut k = 0usize;
+        for p in 0..n {
+            let (x, y) = ((p as u32) % w, (p as u32) / w);
+            let ray = cam.cam.pixel_ray(x, y);
+            self.origin
+                .push([origin.x as f32, origin.y as f32, origin.z as f32]);
+            self.dir
+                .push([ray.dir.x as f32, ray.dir.y as f32, ray.dir.z as f32]);
+            self.z_scale
+                .push(cam.cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5).z as f32);
+            let nh = hits[p] as usize;
+            let mut hit_sky_or_label = false;
+            let label = labels_row.map_or(NONE, |l| {
+                if l[p] == 0 {
+                    NONE
+                } else {
+                    class_index(&self.classes, l[p])
                 }
-            }
-            set.images.push(ImageInfo {
-                frame: key.0,
-                camera: key.1,
-                width: w,
-                height: h,
-                first_ray: set.origin.len(),
-                cam: cam.cam.clone(),
             });
-            let origin = cam.cam.centre();
-            let mut k = 0usize;
-            for p in 0..n {
-                let (x, y) = ((p as u32) % w, (p as u32) / w);
-                let ray = cam.cam.pixel_ray(x, y);
-                set.origin
-                    .push([origin.x as f32, origin.y as f32, origin.z as f32]);
-                set.dir
-                    .push([ray.dir.x as f32, ray.dir.y as f32, ray.dir.z as f32]);
-                set.z_scale
-                    .push(cam.cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5).z as f32);
-                let nh = hits[p] as usize;
-                let mut hit_sky_or_label = false;
-                let label =
-                    labels_row.map_or(NONE, |l| if l[p] == 0 { NONE } else { class_index(l[p]) });
-                for j in k..k + nh {
-                    set.t_in.push(ti[j]);
-                    set.t_out.push(to[j].max(ti[j]));
-                    set.prim.push(pr[j]);
-                    if label != NONE && set.prim_class[pr[j] as usize] == label {
-                        hit_sky_or_label = true;
-                    }
-                }
-                k += nh;
-                set.offsets.push(set.t_in.len() as u32);
-                set.sky
-                    .push([sky0.row(r)[p], sky1.row(r)[p].max(sky0.row(r)[p])]);
-                set.rgb
-                    .push([0, 1, 2].map(|c| rgb[p * 3 + c] as f32 / 255.0));
-                if label != NONE && classes[label as usize] == labels::SKY {
+            for j in k..k + nh {
+                self.t_in.push(ti[j]);
+                self.t_out.push(to[j].max(ti[j]));
+                self.prim.push(pr[j]);
+                if label != NONE && self.prim_class[pr[j] as usize] == label {
                     hit_sky_or_label = true;
                 }
-                set.label.push(label);
-                set.u_mask.push(hit_sky_or_label);
-                set.depth.push(depth_row.map_or(0.0, |d| {
-                    if d[p].is_finite() && d[p] > 0.0 {
-                        d[p]
-                    } else {
-                        0.0
-                    }
-                }));
             }
+            k += nh;
+            self.offsets.push(self.t_in.len() as u32);
+            self.sky.push([sky0[p], sky1[p].max(sky0[p])]);
+            self.rgb
+                .push([0, 1, 2].map(|c| rgb[p * 3 + c] as f32 / 255.0));
+            if label != NONE && self.classes[label as usize] == labels::SKY {
+                hit_sky_or_label = true;
+            }
+            self.label.push(label);
+            self.u_mask.push(hit_sky_or_label);
+            self.depth.push(depth_row.map_or(0.0, |d| {
+                if d[p].is_finite() && d[p] > 0.0 {
+                    d[p]
+                } else {
+                    0.0
+                }
+            }));
         }
-        Ok(set)
     }
 
     /// The rays of new cameras (`(frame, camera id, camera)`) over the primitives of `base`,
@@ -462,6 +378,14 @@ impl RaySet {
             .position(|&c| c == labels::SKY)
             .expect("sky is always a class")
     }
+}
+
+/// Index of label `l` in `classes`, or [`NONE`].
+fn class_index(classes: &[u8], l: u8) -> u16 {
+    classes
+        .iter()
+        .position(|&c| c == l)
+        .map_or(NONE, |i| i as u16)
 }
 
 /// A batch of rays with their samples, flat row-major, ready for the fields.
@@ -714,141 +638,4 @@ fn sample_rays(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// One ray crossing a car box [5, 7] inside a road slab [4, 10], sky [10, 60].
-    fn toy() -> RaySet {
-        RaySet {
-            classes: vec![labels::ROAD, labels::CAR, labels::SKY],
-            things: vec![(labels::CAR, 1)],
-            origin: vec![[0.0; 3]],
-            dir: vec![[0.0, 0.0, 1.0]],
-            z_scale: vec![1.0],
-            offsets: vec![0, 2],
-            t_in: vec![4.0, 5.0],
-            t_out: vec![10.0, 7.0],
-            prim: vec![0, 1],
-            sky: vec![[10.0, 60.0]],
-            rgb: vec![[0.5; 3]],
-            label: vec![1],
-            u_mask: vec![true],
-            depth: vec![0.0],
-            prim_class: vec![0, 1],
-            prim_thing: vec![u32::MAX, 0],
-            ..Default::default()
-        }
-    }
-
-    /// The toy ray 300 times, each with its own interval ends, label and depth.
-    fn many() -> RaySet {
-        let mut set = toy();
-        let one = toy();
-        set.offsets = vec![0];
-        for v in [&mut set.origin, &mut set.dir] {
-            v.clear();
-        }
-        set.t_in.clear();
-        set.t_out.clear();
-        set.prim.clear();
-        set.sky.clear();
-        set.rgb.clear();
-        set.label.clear();
-        set.u_mask.clear();
-        set.depth.clear();
-        set.z_scale.clear();
-        for k in 0..300 {
-            let x = k as f32 * 0.01;
-            set.origin.push(one.origin[0]);
-            set.dir.push(one.dir[0]);
-            set.z_scale.push(1.0);
-            set.t_in.extend([4.0 + x, 5.0 + x]);
-            set.t_out.extend([10.0 + x, 7.0]);
-            set.prim.extend([0, 1]);
-            set.offsets.push(set.t_in.len() as u32);
-            set.sky.push([10.0 + x, 60.0]);
-            set.rgb.push([x, 0.5, 1.0 - x]);
-            set.label.push((k % 3) as u16);
-            set.u_mask.push(k % 2 == 0);
-            set.depth.push(x);
-        }
-        set
-    }
-
-    #[test]
-    fn parallel_batches_equal_the_serial_ones() {
-        let set = many();
-        let p = SamplingParams::default();
-        let ids: Vec<u32> = (0..300).rev().chain(5..40).collect();
-        for seed in [Some(11), None] {
-            let par = sample_batch(&set, &ids, &p, seed);
-            let ser = sample_rays(&set, &ids, &p, seed);
-            assert_eq!(format!("{par:?}"), format!("{ser:?}"), "seed {seed:?}");
-            assert_eq!(par.rays, ids.len());
-        }
-    }
-
-    #[test]
-    fn fixed_fields_follow_the_intervals() {
-        let set = toy();
-        let mut out = [0.0; 3];
-        assert!(fixed_semantic_at(&set, 0, 4.5, &mut out));
-        assert_eq!(out, [1.0, 0.0, 0.0]);
-        assert!(
-            !fixed_semantic_at(&set, 0, 6.0, &mut out),
-            "road and car overlap"
-        );
-        assert_eq!(out, [0.5, 0.5, 0.0]);
-        assert!(fixed_semantic_at(&set, 0, 30.0, &mut out));
-        assert_eq!(out, [0.0, 0.0, 1.0], "sky interval");
-        assert!(!fixed_semantic_at(&set, 0, 2.0, &mut out));
-        assert_eq!(out, [0.0; 3], "outside everything");
-        let mut inst = [0.0];
-        assert!(fixed_instance_at(&set, 0, 6.0, &mut inst));
-        assert_eq!(inst, [1.0]);
-        assert!(!fixed_instance_at(&set, 0, 8.0, &mut inst));
-    }
-
-    #[test]
-    fn samples_stay_inside_primitives_and_strata_tile_them() {
-        let set = toy();
-        let p = SamplingParams {
-            samples: 6,
-            sky_samples: 2,
-            ..Default::default()
-        };
-        let mut rng = SplitMix64::new(7);
-        let (mut t, mut d) = (vec![0.0; 8], vec![0.0; 8]);
-        place_samples(&set, 0, &p, Some(&mut rng), &mut t, &mut d);
-        // Union [4, 10] gets 6 strata of width 1; sky [10, 60] two of width 25.
-        for i in 0..6 {
-            assert!(t[i] >= 4.0 + i as f32 && t[i] <= 5.0 + i as f32, "{t:?}");
-            assert!((d[i] - 1.0).abs() < 1e-6);
-        }
-        assert!(t[6] >= 10.0 && t[7] <= 60.0 && (d[6] - 25.0).abs() < 1e-5);
-        let total: f32 = d.iter().sum();
-        assert!(
-            (total - 56.0).abs() < 1e-4,
-            "strata cover exactly the sampled length"
-        );
-        // A ray with no hits gets only padding (zero width).
-        let mut empty = toy();
-        empty.offsets = vec![0, 0];
-        empty.sky = vec![[0.0, 0.0]];
-        place_samples(&empty, 0, &p, None, &mut t, &mut d);
-        assert!(d.iter().all(|&x| x == 0.0));
-    }
-
-    #[test]
-    fn batches_are_deterministic_for_a_seed() {
-        let set = toy();
-        let p = SamplingParams::default();
-        let a = sample_batch(&set, &[0], &p, Some(3));
-        let b = sample_batch(&set, &[0], &p, Some(3));
-        let c = sample_batch(&set, &[0], &p, Some(4));
-        assert_eq!(a.t, b.t);
-        assert_ne!(a.t, c.t);
-        assert_eq!(a.label, vec![1]);
-        assert_eq!(a.positions.len(), p.per_ray() * 3);
-    }
-}
+mod tests;

@@ -177,13 +177,37 @@ pub fn random_scene(n: usize, extent: f64, size: f64, seed: u64) -> Vec<Primitiv
 /// the start of the street looking along +x (OpenCV axes: z forward, x right, y down).
 pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
     let mut prims = Vec::new();
-    let mut add = |shape: Shape, scale: DVec3, rot_z: f64, t: DVec3, label: u8, inst: u32| {
-        let m = DAffine3::from_scale_rotation_translation(scale, DQuat::from_rotation_z(rot_z), t);
-        prims.push(Primitive::new(shape, m, label, inst).expect("street primitives are valid"));
-    };
+    street_ground(&mut prims);
+    street_buildings(&mut prims);
+    street_cars(&mut prims);
+    street_furniture(&mut prims);
+    // Camera 1.6 m above the road at x = 0.
+    (
+        prims,
+        looking_along_x(width, height, DVec3::new(0.0, 0.0, 1.6)),
+    )
+}
+
+/// Appends a primitive of `shape` scaled by `scale`, turned by `rot_z` about z and moved to `t`.
+fn add_street(
+    prims: &mut Vec<Primitive>,
+    shape: Shape,
+    scale: DVec3,
+    rot_z: f64,
+    t: DVec3,
+    label: u8,
+    inst: u32,
+) {
+    let m = DAffine3::from_scale_rotation_translation(scale, DQuat::from_rotation_z(rot_z), t);
+    prims.push(Primitive::new(shape, m, label, inst).expect("street primitives are valid"));
+}
+
+/// The street's ground: the road, and a sidewalk and terrain on each side.
+fn street_ground(prims: &mut Vec<Primitive>) {
     use labels::*;
     // Road: 8 m wide, 80 m long, 0.2 m thick, top at z = 0.
-    add(
+    add_street(
+        prims,
         Shape::Cuboid,
         DVec3::new(80.0, 8.0, 0.2),
         0.0,
@@ -192,7 +216,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
         0,
     );
     for side in [-1.0, 1.0] {
-        add(
+        add_street(
+            prims,
             Shape::Cuboid,
             DVec3::new(80.0, 3.0, 0.35),
             0.0,
@@ -200,7 +225,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
             SIDEWALK,
             0,
         );
-        add(
+        add_street(
+            prims,
             Shape::Cuboid,
             DVec3::new(80.0, 10.0, 0.2),
             0.0,
@@ -209,10 +235,16 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
             0,
         );
     }
-    // Buildings on the left (y > 0): boxes and an L-shaped extruded footprint.
+}
+
+/// The street's buildings, instances 1 to 4: two boxes and an L-shaped extruded footprint on
+/// the left (y > 0), a house with a gable roof on the right.
+fn street_buildings(prims: &mut Vec<Primitive>) {
+    use labels::*;
     let mut inst = 1;
     for (x0, len, h) in [(6.0, 10.0, 9.0), (30.0, 8.0, 14.0)] {
-        add(
+        add_street(
+            prims,
             Shape::Cuboid,
             DVec3::new(len, 8.0, h),
             0.0,
@@ -232,7 +264,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
             [0.0, 1.0],
         ],
     };
-    add(
+    add_street(
+        prims,
         l_shape,
         DVec3::new(12.0, 10.0, 11.0),
         0.0,
@@ -241,45 +274,50 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
         inst,
     );
     inst += 1;
-    // A house with a gable roof on the right (y < 0): a mesh (pentagonal prism).
-    let house = {
-        let prof = [
-            [-0.5, -0.5],
-            [0.5, -0.5],
-            [0.5, 0.2],
-            [0.0, 0.5],
-            [-0.5, 0.2],
-        ]; // (y, z)
-        let mut vertices = Vec::new();
-        for x in [-0.5, 0.5] {
-            for p in prof {
-                vertices.push(DVec3::new(x, p[0], p[1]));
-            }
-        }
-        let mut faces = vec![
-            [0, 2, 1],
-            [0, 3, 2],
-            [0, 4, 3],
-            [5, 6, 7],
-            [5, 7, 8],
-            [5, 8, 9],
-        ];
-        for k in 0..5u32 {
-            let n = (k + 1) % 5;
-            faces.push([k, n, n + 5]);
-            faces.push([k, n + 5, k + 5]);
-        }
-        Shape::Mesh { vertices, faces }
-    };
-    add(
-        house,
+    add_street(
+        prims,
+        gable_house(),
         DVec3::new(14.0, 9.0, 10.0),
         0.0,
         DVec3::new(20.0, -12.0, 5.0),
         BUILDING,
         inst,
     );
-    // Cars parked on both sides.
+}
+
+/// A house with a gable roof in the unit cube: a mesh (pentagonal prism along x).
+fn gable_house() -> Shape {
+    let prof = [
+        [-0.5, -0.5],
+        [0.5, -0.5],
+        [0.5, 0.2],
+        [0.0, 0.5],
+        [-0.5, 0.2],
+    ]; // (y, z)
+    let mut vertices = Vec::new();
+    for x in [-0.5, 0.5] {
+        for p in prof {
+            vertices.push(DVec3::new(x, p[0], p[1]));
+        }
+    }
+    let mut faces = vec![
+        [0, 2, 1],
+        [0, 3, 2],
+        [0, 4, 3],
+        [5, 6, 7],
+        [5, 7, 8],
+        [5, 8, 9],
+    ];
+    for k in 0..5u32 {
+        let n = (k + 1) % 5;
+        faces.push([k, n, n + 5]);
+        faces.push([k, n + 5, k + 5]);
+    }
+    Shape::Mesh { vertices, faces }
+}
+
+/// Four cars parked on both sides, instances 1 to 4.
+fn street_cars(prims: &mut Vec<Primitive>) {
     for (k, (x, y, rot)) in [
         (9.0, 2.6, 0.0),
         (15.0, -2.7, 0.05),
@@ -289,18 +327,25 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
     .into_iter()
     .enumerate()
     {
-        add(
+        add_street(
+            prims,
             Shape::Cuboid,
             DVec3::new(4.3, 1.8, 1.5),
             rot,
             DVec3::new(x, y, 0.75),
-            CAR,
+            labels::CAR,
             k as u32 + 1,
         );
     }
-    // Trees on the right sidewalk: trunk (pole-like cuboid, vegetation) and crown.
+}
+
+/// Trees on the right sidewalk (trunk: a pole-like vegetation cuboid; crown: an ellipsoid), a
+/// fence and a box.
+fn street_furniture(prims: &mut Vec<Primitive>) {
+    use labels::*;
     for x in [8.0, 26.0, 34.0] {
-        add(
+        add_street(
+            prims,
             Shape::Cuboid,
             DVec3::new(0.3, 0.3, 3.0),
             0.0,
@@ -308,7 +353,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
             VEGETATION,
             0,
         );
-        add(
+        add_street(
+            prims,
             Shape::Ellipsoid,
             DVec3::new(3.5, 3.5, 4.0),
             0.0,
@@ -317,7 +363,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
             0,
         );
     }
-    add(
+    add_street(
+        prims,
         Shape::Cuboid,
         DVec3::new(6.0, 0.1, 1.2),
         0.0,
@@ -325,7 +372,8 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
         FENCE,
         0,
     );
-    add(
+    add_street(
+        prims,
         Shape::Cuboid,
         DVec3::new(1.0, 1.0, 1.0),
         0.4,
@@ -333,20 +381,22 @@ pub fn street_scene(width: u32, height: u32) -> (Vec<Primitive>, Camera) {
         BOX,
         1,
     );
-    // Camera 1.6 m above the road at x = 0, looking along +x: camera z = world x,
-    // camera x = world -y, camera y = world -z.
+}
+
+/// A camera at `centre` looking along +x with a 90 degree horizontal field of view: camera z =
+/// world x, camera x = world -y, camera y = world -z.
+fn looking_along_x(width: u32, height: u32, centre: DVec3) -> Camera {
     let r = glam::DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X);
     let f = width as f64 * 0.5;
-    let cam = Camera {
+    Camera {
         width,
         height,
         fx: f,
         fy: f,
         cx: width as f64 / 2.0,
         cy: height as f64 / 2.0,
-        cam_to_world: DAffine3::from_mat3_translation(r, DVec3::new(0.0, 0.0, 1.6)),
-    };
-    (prims, cam)
+        cam_to_world: DAffine3::from_mat3_translation(r, centre),
+    }
 }
 
 /// A long synthetic street of `n` primitives of every kind (road slabs, buildings as cuboids,
@@ -434,16 +484,8 @@ pub fn city_scene(n: usize, width: u32, height: u32, seed: u64) -> (Vec<Primitiv
         let m = DAffine3::from_scale_rotation_translation(scale, yaw, t);
         prims.push(Primitive::new(shape, m, label, inst).expect("city primitives are valid"));
     }
-    let r = glam::DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X);
-    let f = width as f64 * 0.5;
-    let cam = Camera {
-        width,
-        height,
-        fx: f,
-        fy: f,
-        cx: width as f64 / 2.0,
-        cy: height as f64 / 2.0,
-        cam_to_world: DAffine3::from_mat3_translation(r, DVec3::new(-5.0, 0.0, 1.6)),
-    };
-    (prims, cam)
+    (
+        prims,
+        looking_along_x(width, height, DVec3::new(-5.0, 0.0, 1.6)),
+    )
 }

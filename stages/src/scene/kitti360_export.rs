@@ -38,10 +38,11 @@ use std::path::{Path, PathBuf};
 use arrow::datatypes::{Float32Type, UInt16Type, UInt8Type};
 use glam::{DAffine3, DMat3, DVec3};
 
-use super::io::{image_keys, scene_info, table, write_bytes, write_png, write_text};
+use super::io::{image_keys, scene_info, table, write_bytes, write_png, write_text, SceneInfo};
 use super::kitti360::{self, Kitti360Params};
 use crate::geometry::{
-    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, Primitive, Shape,
+    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, CameraRow,
+    Primitive, Shape,
 };
 use crate::{labels, pngio};
 use crate::{tables, Result, StageError, Tables};
@@ -82,7 +83,9 @@ pub fn lidar_points(depth: &[f32], cam: &Camera, rect_to_velo: &DAffine3) -> Vec
     out
 }
 
-/// Writes the KITTI-360 layout into `dir`; returns the files written.
+/// Writes the KITTI-360 layout into `dir`; returns the files written. One writer per file
+/// kind, in a fixed order (poses, calibrations, bounding primitives, images, GT, left-camera
+/// tables, LiDAR), so the list of files and the first error are always the same.
 pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     let info = scene_info(t)?;
     let cams = cameras_from_table(table(t, "cameras")?)?;
@@ -94,8 +97,25 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         ..Default::default()
     };
     let mut files = Vec::new();
+    write_poses(&at, &info, &cams, &mut files)?;
+    write_perspective(&at, &info, &cams, &mut files)?;
+    let rect_to_velo = rect_to_velo();
+    write_lidar_calibration(&at, &rect_to_velo, &mut files)?;
+    write_bboxes(&at, &info, &cams, &prims, &mut files)?;
+    write_images(&at, t, &mut files)?;
+    write_gt(&at, t, &mut files)?;
+    write_left_tables(&at, t, &mut files)?;
+    write_lidar(&at, t, &cams, &rect_to_velo, &mut files)?;
+    Ok(files)
+}
 
-    // Poses of the left camera, world = scene + origin.
+/// `cam0_to_world.txt`: the poses of the left camera, world = scene + origin.
+fn write_poses(
+    at: &Kitti360Params,
+    info: &SceneInfo,
+    cams: &[CameraRow],
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
     let mut poses = String::new();
     for row in cams.iter().filter(|r| r.camera == 0) {
         let mut m = affine_to_row_major(&row.cam.cam_to_world);
@@ -108,9 +128,17 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         }
         poses.push('\n');
     }
-    write_text(at.path(&at.poses, 0, 0), &poses, &mut files)?;
+    write_text(at.path(&at.poses, 0, 0), &poses, files)
+}
 
-    // Rectified intrinsics (both cameras share them; the right one is offset by the baseline).
+/// `perspective.txt`: the rectified intrinsics (both cameras share them; the right one is
+/// offset by the baseline).
+fn write_perspective(
+    at: &Kitti360Params,
+    info: &SceneInfo,
+    cams: &[CameraRow],
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
     let left = cams
         .iter()
         .find(|r| r.camera == 0)
@@ -133,29 +161,45 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         let _ = writeln!(calib, "R_rect_0{k}: {r}");
         let _ = writeln!(calib, "S_rect_0{k}: {} {}", c.width, c.height);
     }
-    write_text(at.path(&at.calibration, 0, 0), &calib, &mut files)?;
+    write_text(at.path(&at.calibration, 0, 0), &calib, files)
+}
 
-    // Unrectified camera 0 -> velodyne = rectified -> velodyne after unrectified -> rectified.
-    let rect_to_velo = rect_to_velo();
-    let cam_to_velo = rect_to_velo * DAffine3::from_mat3(r_rect_00());
+/// `calib_cam_to_velo.txt`: unrectified camera 0 -> velodyne = rectified -> velodyne after
+/// unrectified -> rectified.
+fn write_lidar_calibration(
+    at: &Kitti360Params,
+    rect_to_velo: &DAffine3,
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
+    let cam_to_velo = *rect_to_velo * DAffine3::from_mat3(r_rect_00());
     let row_major = affine_to_row_major(&cam_to_velo);
     let line = row_major[..12].iter().map(|&v| num(v)).collect::<Vec<_>>();
     write_text(
         at.path(&at.lidar_calib, 0, 0),
         &(line.join(" ") + "\n"),
-        &mut files,
-    )?;
+        files,
+    )
+}
 
-    // 3D bounding primitives.
+/// The `data_3d_bboxes` XML of the 3D bounding primitives, valid over the cameras' frames.
+fn write_bboxes(
+    at: &Kitti360Params,
+    info: &SceneInfo,
+    cams: &[CameraRow],
+    prims: &[Primitive],
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
     let frames: Vec<u32> = cams.iter().map(|r| r.frame).collect();
     let (first, last) = (
         frames.iter().copied().min().unwrap_or(0),
         frames.iter().copied().max().unwrap_or(0),
     );
-    let xml = bboxes_xml(&prims, info.origin, first, last)?;
-    write_text(at.path(&at.bboxes, 0, 0), &xml, &mut files)?;
+    let xml = bboxes_xml(prims, info.origin, first, last)?;
+    write_text(at.path(&at.bboxes, 0, 0), &xml, files)
+}
 
-    // Images.
+/// The RGB images of both cameras.
+fn write_images(at: &Kitti360Params, t: &Tables, files: &mut Vec<PathBuf>) -> Result<()> {
     let images = table(t, "images")?;
     let rgb = tables::get_binary(images, "images", "rgb")?;
     for (i, (f, cam, w, h)) in image_keys(images, "images")?.into_iter().enumerate() {
@@ -166,11 +210,14 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             h,
             image::ExtendedColorType::Rgb8,
             rgb.value(i),
-            &mut files,
+            files,
         )?;
     }
+    Ok(())
+}
 
-    // Ground-truth labels.
+/// The ground-truth semantic (8-bit ids) and instance (16-bit) PNGs.
+fn write_gt(at: &Kitti360Params, t: &Tables, files: &mut Vec<PathBuf>) -> Result<()> {
     let sem = table(t, "gt_semantic")?;
     let labels_col = tables::get_list::<UInt8Type>(sem, "gt_semantic", "labels")?;
     let gt_semantic = at.gt_semantic.clone().unwrap_or_default();
@@ -181,7 +228,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             h,
             image::ExtendedColorType::L8,
             labels_col.row(i),
-            &mut files,
+            files,
         )?;
     }
     let inst = table(t, "gt_instance")?;
@@ -192,8 +239,11 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         pngio::write_gray16(&path, w, h, inst_col.row(i))?;
         files.push(path);
     }
+    Ok(())
+}
 
-    // Pseudo labels and stereo depth (left camera).
+/// Pseudo labels and stereo depth (left camera only).
+fn write_left_tables(at: &Kitti360Params, t: &Tables, files: &mut Vec<PathBuf>) -> Result<()> {
     let pl = table(t, "pseudo_labels")?;
     let pl_col = tables::get_list::<UInt8Type>(pl, "pseudo_labels", "labels")?;
     for (i, (f, cam, w, h)) in image_keys(pl, "pseudo_labels")?.into_iter().enumerate() {
@@ -204,7 +254,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
             h,
             image::ExtendedColorType::L8,
             pl_col.row(i),
-            &mut files,
+            files,
         )?;
     }
     let sd = table(t, "stereo_depth")?;
@@ -215,8 +265,17 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
         pngio::write_gray16(&path, w, h, &pngio::depth_to_u16(sd_col.row(i)))?;
         files.push(path);
     }
+    Ok(())
+}
 
-    // LiDAR scans of the evaluation frames.
+/// The LiDAR scans of the evaluation frames ([`lidar_points`] of each `lidar_depth` row).
+fn write_lidar(
+    at: &Kitti360Params,
+    t: &Tables,
+    cams: &[CameraRow],
+    rect_to_velo: &DAffine3,
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
     let ld = table(t, "lidar_depth")?;
     let ld_col = tables::get_list::<Float32Type>(ld, "lidar_depth", "depth")?;
     for (i, (f, cam, w, h)) in image_keys(ld, "lidar_depth")?.into_iter().enumerate() {
@@ -230,10 +289,10 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
                     "table `lidar_depth`: frame {f} ({w}x{h}) has no left camera of that size"
                 ))
             })?;
-        let bytes = lidar_points(ld_col.row(i), &row.cam, &rect_to_velo);
-        write_bytes(at.path(kitti360::LIDAR_PATTERN, f, 0), &bytes, &mut files)?;
+        let bytes = lidar_points(ld_col.row(i), &row.cam, rect_to_velo);
+        write_bytes(at.path(kitti360::LIDAR_PATTERN, f, 0), &bytes, files)?;
     }
-    Ok(files)
+    Ok(())
 }
 
 /// How far a loaded `stereo_depth` may be from the exported one: half of the 16-bit format's

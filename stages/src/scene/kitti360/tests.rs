@@ -8,9 +8,10 @@ use std::path::{Path, PathBuf};
 use arrow::datatypes::{Float64Type, UInt32Type, UInt8Type};
 
 use super::*;
-use crate::geometry::{cameras_from_table, primitives_from_table};
+use crate::geometry::{cameras_from_table, primitives_from_table, Shape};
 use crate::kinds::kitti360_scene::Kitti360Scene;
 use crate::kinds::synthetic_scene::SyntheticScene;
+use crate::labels;
 use crate::scene::kitti360_export::{self, LIDAR_DEPTH_TOLERANCE, STEREO_DEPTH_TOLERANCE_M};
 use crate::scene::synthetic::SceneParams;
 use crate::Inputs;

@@ -1,0 +1,138 @@
+//! Tests of the sampling plan on toy ray sets: sample placement, fixed fields, batches.
+
+use super::*;
+
+/// One ray crossing a car box [5, 7] inside a road slab [4, 10], sky [10, 60].
+fn toy() -> RaySet {
+    RaySet {
+        classes: vec![labels::ROAD, labels::CAR, labels::SKY],
+        things: vec![(labels::CAR, 1)],
+        origin: vec![[0.0; 3]],
+        dir: vec![[0.0, 0.0, 1.0]],
+        z_scale: vec![1.0],
+        offsets: vec![0, 2],
+        t_in: vec![4.0, 5.0],
+        t_out: vec![10.0, 7.0],
+        prim: vec![0, 1],
+        sky: vec![[10.0, 60.0]],
+        rgb: vec![[0.5; 3]],
+        label: vec![1],
+        u_mask: vec![true],
+        depth: vec![0.0],
+        prim_class: vec![0, 1],
+        prim_thing: vec![u32::MAX, 0],
+        ..Default::default()
+    }
+}
+
+/// The toy ray 300 times, each with its own interval ends, label and depth.
+fn many() -> RaySet {
+    let mut set = toy();
+    let one = toy();
+    set.offsets = vec![0];
+    for v in [&mut set.origin, &mut set.dir] {
+        v.clear();
+    }
+    set.t_in.clear();
+    set.t_out.clear();
+    set.prim.clear();
+    set.sky.clear();
+    set.rgb.clear();
+    set.label.clear();
+    set.u_mask.clear();
+    set.depth.clear();
+    set.z_scale.clear();
+    for k in 0..300 {
+        let x = k as f32 * 0.01;
+        set.origin.push(one.origin[0]);
+        set.dir.push(one.dir[0]);
+        set.z_scale.push(1.0);
+        set.t_in.extend([4.0 + x, 5.0 + x]);
+        set.t_out.extend([10.0 + x, 7.0]);
+        set.prim.extend([0, 1]);
+        set.offsets.push(set.t_in.len() as u32);
+        set.sky.push([10.0 + x, 60.0]);
+        set.rgb.push([x, 0.5, 1.0 - x]);
+        set.label.push((k % 3) as u16);
+        set.u_mask.push(k % 2 == 0);
+        set.depth.push(x);
+    }
+    set
+}
+
+#[test]
+fn parallel_batches_equal_the_serial_ones() {
+    let set = many();
+    let p = SamplingParams::default();
+    let ids: Vec<u32> = (0..300).rev().chain(5..40).collect();
+    for seed in [Some(11), None] {
+        let par = sample_batch(&set, &ids, &p, seed);
+        let ser = sample_rays(&set, &ids, &p, seed);
+        assert_eq!(format!("{par:?}"), format!("{ser:?}"), "seed {seed:?}");
+        assert_eq!(par.rays, ids.len());
+    }
+}
+
+#[test]
+fn fixed_fields_follow_the_intervals() {
+    let set = toy();
+    let mut out = [0.0; 3];
+    assert!(fixed_semantic_at(&set, 0, 4.5, &mut out));
+    assert_eq!(out, [1.0, 0.0, 0.0]);
+    assert!(
+        !fixed_semantic_at(&set, 0, 6.0, &mut out),
+        "road and car overlap"
+    );
+    assert_eq!(out, [0.5, 0.5, 0.0]);
+    assert!(fixed_semantic_at(&set, 0, 30.0, &mut out));
+    assert_eq!(out, [0.0, 0.0, 1.0], "sky interval");
+    assert!(!fixed_semantic_at(&set, 0, 2.0, &mut out));
+    assert_eq!(out, [0.0; 3], "outside everything");
+    let mut inst = [0.0];
+    assert!(fixed_instance_at(&set, 0, 6.0, &mut inst));
+    assert_eq!(inst, [1.0]);
+    assert!(!fixed_instance_at(&set, 0, 8.0, &mut inst));
+}
+
+#[test]
+fn samples_stay_inside_primitives_and_strata_tile_them() {
+    let set = toy();
+    let p = SamplingParams {
+        samples: 6,
+        sky_samples: 2,
+        ..Default::default()
+    };
+    let mut rng = SplitMix64::new(7);
+    let (mut t, mut d) = (vec![0.0; 8], vec![0.0; 8]);
+    place_samples(&set, 0, &p, Some(&mut rng), &mut t, &mut d);
+    // Union [4, 10] gets 6 strata of width 1; sky [10, 60] two of width 25.
+    for i in 0..6 {
+        assert!(t[i] >= 4.0 + i as f32 && t[i] <= 5.0 + i as f32, "{t:?}");
+        assert!((d[i] - 1.0).abs() < 1e-6);
+    }
+    assert!(t[6] >= 10.0 && t[7] <= 60.0 && (d[6] - 25.0).abs() < 1e-5);
+    let total: f32 = d.iter().sum();
+    assert!(
+        (total - 56.0).abs() < 1e-4,
+        "strata cover exactly the sampled length"
+    );
+    // A ray with no hits gets only padding (zero width).
+    let mut empty = toy();
+    empty.offsets = vec![0, 0];
+    empty.sky = vec![[0.0, 0.0]];
+    place_samples(&empty, 0, &p, None, &mut t, &mut d);
+    assert!(d.iter().all(|&x| x == 0.0));
+}
+
+#[test]
+fn batches_are_deterministic_for_a_seed() {
+    let set = toy();
+    let p = SamplingParams::default();
+    let a = sample_batch(&set, &[0], &p, Some(3));
+    let b = sample_batch(&set, &[0], &p, Some(3));
+    let c = sample_batch(&set, &[0], &p, Some(4));
+    assert_eq!(a.t, b.t);
+    assert_ne!(a.t, c.t);
+    assert_eq!(a.label, vec![1]);
+    assert_eq!(a.positions.len(), p.per_ray() * 3);
+}
