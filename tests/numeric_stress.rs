@@ -25,7 +25,7 @@ use stages::{
     geometry::{cameras_from_table, primitives_from_table, DAffine3, DMat3, DVec3, Primitive},
     geometry::{Interval, Ray, Shape},
     model::burn::loss::{depth_mse, label_nll},
-    model::burn::render::{render_depth, render_semantics, render_weights},
+    model::burn::volume::{render_depth, render_semantics, render_weights},
     model::burn::Backend,
     tables, Inputs, NoProgress, Tables,
 };

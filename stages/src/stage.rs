@@ -3,7 +3,7 @@
 //! ordering and timing. Every output table has its Arrow schema in `data_schema/<table>.json`
 //! ([`crate::schema`]).
 
-use std::{collections::BTreeMap, fmt, path::Path, path::PathBuf};
+use std::{collections::BTreeMap, path::Path, path::PathBuf};
 
 use arrow::record_batch::RecordBatch;
 use serde::{de::DeserializeOwned, Serialize};
@@ -12,28 +12,21 @@ use serde_json::Value;
 /// Named tables: what a stage writes, and what an upstream stage hands to a downstream one.
 pub type Tables = BTreeMap<String, RecordBatch>;
 
-/// Why a stage could not produce its outputs.
-#[derive(Debug, Clone, PartialEq)]
+/// Why a stage could not produce its outputs, as the runner classifies it: the library's own
+/// errors (`ModelError`, `TrainError`, `GeometryError`, `MetricError`, ...) convert into one of
+/// these at the kind boundary, keeping their message.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum StageError {
     /// The parameters are invalid (the runner reports this as a configuration error, exit 2).
+    #[error("invalid params: {0}")]
     Params(String),
     /// An input table or file is missing or malformed.
+    #[error("bad input: {0}")]
     Input(String),
     /// The computation itself failed (e.g. training diverged).
+    #[error("{0}")]
     Failed(String),
 }
-
-impl fmt::Display for StageError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            StageError::Params(m) => write!(f, "invalid params: {m}"),
-            StageError::Input(m) => write!(f, "bad input: {m}"),
-            StageError::Failed(m) => write!(f, "{m}"),
-        }
-    }
-}
-
-impl std::error::Error for StageError {}
 
 pub type Result<T, E = StageError> = std::result::Result<T, E>;
 

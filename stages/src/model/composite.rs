@@ -2,7 +2,7 @@
 //! densities, then colour, depth, learned and fixed semantic distributions and the fixed
 //! instance distribution, with early ray termination. Every engine's inference goes through
 //! this one compositor (engines only evaluate the field at the samples); the training path
-//! computes the same quantities on tensors ([`crate::model::burn::render`]) and the fused
+//! computes the same quantities on tensors ([`crate::model::burn::volume`]) and the fused
 //! engine by hand, and tests hold them to the same numbers.
 //!
 //! Conventions (REFERENCE.md section 1): alpha_i = 1 - exp(-sigma_i delta_i), T_i =

@@ -1,4 +1,4 @@
-//! Scenes: the synthetic street generator ([`synthetic`]: [`layout`], [`render`], [`noise`],
+//! Scenes: the synthetic street generator ([`synthetic`]: [`layout`], [`tracer`], [`noise`],
 //! [`depth`], [`rng`]), the KITTI-360 reader ([`kitti360`]) and writer ([`kitti360_export`]),
 //! previews, semi-global stereo matching ([`stereo`]), and the helpers they share ([`io`]).
 
@@ -9,7 +9,7 @@ pub mod kitti360_export;
 pub mod layout;
 pub mod noise;
 pub mod preview;
-pub mod render;
 pub mod rng;
 pub mod stereo;
 pub mod synthetic;
+pub mod tracer;

@@ -3,7 +3,7 @@
 //! downloaded here nor shipped).
 //!
 //! One run builds the street ([`layout`]), places a forward-moving stereo rig, renders every
-//! image exactly ([`render`]), derives noisy pseudo labels ([`noise`]), weak stereo depth and
+//! image exactly ([`tracer`]), derives noisy pseudo labels ([`noise`]), weak stereo depth and
 //! LiDAR depth ([`depth`]), and writes the tables of `data_schema/`: `scene_info`, `cameras`,
 //! `primitives`, `images`, `pseudo_labels`, `stereo_depth`, `lidar_depth`, `gt_semantic`,
 //! `gt_instance`, `gt_depth`. `export` writes the KITTI-360 layout ([`kitti360_export`]) and
@@ -28,7 +28,7 @@ use crate::labels::{self, PAPER_CLASSES, ROAD, SKY, TERRAIN};
 use crate::{tables, Progress, Result, StageError, Tables};
 
 use super::layout::{Layout, LayoutParams, RIG_Y};
-use super::{depth, layout, noise, render, rng};
+use super::{depth, layout, noise, rng, tracer};
 
 /// Parameters of the synthetic scene. Every field has a default.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -284,7 +284,7 @@ pub struct Generated {
     pub layout: Layout,
     pub cameras: Vec<CameraRow>,
     /// Per camera row: the rendering.
-    pub images: Vec<render::Rendered>,
+    pub images: Vec<tracer::Rendered>,
     /// Per left camera row (frame order): pseudo labels and stereo depth.
     pub pseudo: Vec<Vec<u8>>,
     pub stereo: Vec<Vec<f32>>,
@@ -313,12 +313,12 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
         .collect();
     let total = cameras.len() as u64;
     let done = std::sync::atomic::AtomicU64::new(0);
-    let images: Vec<render::Rendered> = cameras
+    let images: Vec<tracer::Rendered> = cameras
         .par_iter()
         .map(|row| {
             let look =
-                render::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
-            let out = render::render(&layout, &bvh, &row.cam, &look);
+                tracer::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
+            let out = tracer::render(&layout, &bvh, &row.cam, &look);
             let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress.update(d, total, "rendering");
             out

@@ -68,7 +68,7 @@ pub fn depth_mse(depth: Tensor<1>, target: Tensor<1>, valid: Tensor<1>) -> Tenso
 mod tests {
     use super::*;
     use crate::model::burn::gradcheck::{check, coefficients};
-    use crate::model::burn::render::{render_depth, render_rgb, render_semantics, render_weights};
+    use crate::model::burn::volume::{render_depth, render_rgb, render_semantics, render_weights};
     use crate::model::burn::Backend;
     use crate::model::loss::LossTerm;
     use burn::tensor::activation::softmax;

@@ -15,7 +15,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use super::backend::Backend;
 use super::field::{FieldHead, RadianceField};
 use super::loss;
-use super::render::{render_depth, render_rgb, render_semantics, render_weights};
+use super::volume::{render_depth, render_rgb, render_semantics, render_weights};
 use crate::model::batch::RayBatch;
 use crate::model::config::{FieldSpec, TrainConfig};
 use crate::model::error::TrainError;
