@@ -33,15 +33,28 @@ pub enum CliError {
     Config(#[from] ConfigError),
     #[error(transparent)]
     Run(#[from] RunError),
+    /// (Boxed, as is `Bench`: they hold the others, and errors travel by value.)
     #[error(transparent)]
-    Executor(#[from] ExecutorError),
+    Executor(Box<ExecutorError>),
     #[error(transparent)]
     Store(#[from] StoreError),
     #[error(transparent)]
-    Bench(#[from] BenchError),
+    Bench(Box<BenchError>),
     /// Anything else that went wrong while working (exporting, formatting a table).
     #[error(transparent)]
     Other(#[from] anyhow::Error),
+}
+
+impl From<ExecutorError> for CliError {
+    fn from(e: ExecutorError) -> CliError {
+        CliError::Executor(Box::new(e))
+    }
+}
+
+impl From<BenchError> for CliError {
+    fn from(e: BenchError) -> CliError {
+        CliError::Bench(Box::new(e))
+    }
 }
 
 impl Classify for CliError {
@@ -332,7 +345,7 @@ fn cmd_status(p: &Pipeline, verify: bool, scenes: &[String]) -> Result<i32> {
     let store = Store::open_existing(&p.cache_dir);
     let res = runner::resolve(p, &dag, &store, verify)?;
     if !scenes.is_empty() {
-        runner::plan::check_scenes(p, scenes)?;
+        runner::check_scenes(p, scenes)?;
     }
     let shown = |i: usize| {
         scenes.is_empty()

@@ -28,9 +28,9 @@
 //! A `dataset:` stage's input that names a template stage *gathers* it: the stage receives, for
 //! each table the slot reads, the rows of every scene with a leading `scene` column.
 //!
-//! The parts: [`yaml`] (positions of keys, messages about values), [`validate`] (a stage
-//! against the registry), [`scenes`] (matrix and expansion), [`overrides`] (`--set` and the
-//! param setter), [`slurm`] (`executor.slurm`); this file reads the top-level sections and
+//! The parts: `yaml` (positions of keys, messages about values), `validate` (a stage
+//! against the registry), `scenes` (matrix and expansion), `overrides` (`--set` and the
+//! param setter), `slurm` (`executor.slurm`); this file reads the top-level sections and
 //! puts them together.
 
 mod error;

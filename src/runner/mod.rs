@@ -4,7 +4,8 @@
 //!
 //! The parts: [`plan`] (keys, freshness and why, the selection), `schedule` (which stage
 //! next), `execute` (one stage on its thread), `progress` (bars), [`report`] (the run's
-//! report and the printed summary), [`options`] and [`error`].
+//! report and the printed summary), [`options`], and the errors [`RunError`] (the run could
+//! not start or go on) and [`StageFailure`] (one stage failed; in the report).
 
 mod error;
 mod execute;
@@ -21,7 +22,7 @@ use tokio::task::JoinSet;
 pub use error::{RunError, StageFailure};
 pub use execute::gather_tables;
 pub use options::{RunOptions, Scenes};
-pub use plan::{external_digests, resolve, selection, Resolved, State, FILES_SLOT};
+pub use plan::{check_scenes, external_digests, resolve, selection, Resolved, State, FILES_SLOT};
 pub use report::{fmt_bytes, fmt_secs, summary, text_table, Outcome, RunReport, StageReport};
 
 use crate::{
