@@ -340,13 +340,8 @@ fn ablation(d: &mut Doc, i: &Input) {
             .map(|m| m.label.to_string())
             .collect();
         text.push_str(&format!(
-            " {} {} no semantic supervision, so only {} {} reported.",
+            " Without semantic supervision ({}), only {} {} reported.",
             and_list(&unsupervised),
-            if unsupervised.len() == 1 {
-                "has"
-            } else {
-                "have"
-            },
             and_list(&label_free),
             if label_free.len() == 1 { "is" } else { "are" },
         ));

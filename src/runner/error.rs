@@ -125,3 +125,33 @@ pub enum StageFailure {
         message: String,
     },
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn selections_are_usage_errors_and_failures_are_not() {
+        assert_eq!(RunError::UntilAndOnly.exit_code(), 2);
+        assert_eq!(RunError::Panicked("boom".into()).exit_code(), 1);
+        let only = RunError::NotUpToDate {
+            only: Some("d".into()),
+            stage: "b".into(),
+            reason: "never run".into(),
+        };
+        assert_eq!(
+            only.to_string(),
+            "cannot run only the selected stages: `d` needs stage `b`, which is not up to date (never run); run `pipe run --until d` first"
+        );
+        let dataset = RunError::NotUpToDate {
+            only: None,
+            stage: "b@s".into(),
+            reason: "never run".into(),
+        };
+        assert_eq!(
+            dataset.to_string(),
+            "cannot run only the selected stages: the dataset stages need stage `b@s`, which is not up to date (never run); run its scene first"
+        );
+        assert!(dataset.is_usage());
+    }
+}
