@@ -1,5 +1,6 @@
 //! Command-line interface: argument parsing (clap) and one function per command. `main.rs`
-//! only dispatches and maps errors to exit codes (0 ok, 1 a stage failed, 2 bad usage/config).
+//! only dispatches and maps errors to exit codes (0 ok, 1 a stage failed, 2 bad usage/config):
+//! a [`CliError`] says which by its variant.
 
 use std::{
     collections::BTreeSet,
@@ -7,32 +8,73 @@ use std::{
     sync::Arc,
 };
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use clap::{Args, Parser, Subcommand};
 
 use crate::{
-    bench,
-    config::{self, Override, Pipeline},
+    bench::{self, BenchError},
+    config::{self, ConfigError, Override, Pipeline},
     dag::Dag,
-    executor::{self, ExecOptions, ExecutorKind},
-    runner::{self, Outcome, RunOptions, State},
-    store::{Entry, Store},
+    error::Classify,
+    executor::{self, ExecOptions, ExecutorError, ExecutorKind},
+    runner::{self, Outcome, RunError, RunOptions, State},
+    store::{Entry, Manifest, RunLock, Store, StoreError},
 };
 
-/// A usage error (exit code 2), as opposed to a failure while working (exit code 1).
-#[derive(Debug)]
-pub struct UsageError(pub String);
+/// Why a command failed: bad usage or configuration (exit code 2) or a failure while working
+/// (exit code 1), told by the variant (and, for the library's errors, by theirs).
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    /// A bad command line: exit code 2.
+    #[error("{0}")]
+    Usage(String),
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error(transparent)]
+    Run(#[from] RunError),
+    /// (Boxed, as is `Bench`: they hold the others, and errors travel by value.)
+    #[error(transparent)]
+    Executor(Box<ExecutorError>),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error(transparent)]
+    Bench(Box<BenchError>),
+    /// Anything else that went wrong while working (exporting, formatting a table).
+    #[error(transparent)]
+    Other(#[from] anyhow::Error),
+}
 
-impl std::fmt::Display for UsageError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
+impl From<ExecutorError> for CliError {
+    fn from(e: ExecutorError) -> CliError {
+        CliError::Executor(Box::new(e))
     }
 }
-impl std::error::Error for UsageError {}
 
-fn usage(msg: impl Into<String>) -> anyhow::Error {
-    anyhow::Error::new(UsageError(msg.into()))
+impl From<BenchError> for CliError {
+    fn from(e: BenchError) -> CliError {
+        CliError::Bench(Box::new(e))
+    }
+}
+
+impl Classify for CliError {
+    fn is_usage(&self) -> bool {
+        match self {
+            CliError::Usage(_) => true,
+            CliError::Config(e) => e.is_usage(),
+            CliError::Run(e) => e.is_usage(),
+            CliError::Executor(e) => e.is_usage(),
+            CliError::Store(e) => e.is_usage(),
+            CliError::Bench(e) => e.is_usage(),
+            CliError::Other(_) => false,
+        }
+    }
+}
+
+type Result<T, E = CliError> = std::result::Result<T, E>;
+
+fn usage(msg: impl Into<String>) -> CliError {
+    CliError::Usage(msg.into())
 }
 
 #[derive(Parser, Debug)]
@@ -185,13 +227,16 @@ pub enum Command {
     },
 }
 
-fn load(args: &PipelineArgs) -> Result<Pipeline> {
-    let overrides = args
-        .set
+/// The `--set` arguments, parsed.
+fn overrides(args: &PipelineArgs) -> Result<Vec<Override>> {
+    args.set
         .iter()
         .map(|s| Override::parse(s).map_err(usage))
-        .collect::<Result<Vec<_>>>()?;
-    let mut p = config::load(&args.file, &overrides)?;
+        .collect()
+}
+
+fn load(args: &PipelineArgs) -> Result<Pipeline> {
+    let mut p = config::load(&args.file, &overrides(args)?)?;
     if let Some(c) = &args.cache {
         p.cache_dir = c.clone();
     }
@@ -243,10 +288,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                 _ => p.scenes.len() > 1,
             };
             if executor == ExecutorKind::Slurm && p.scenes.is_empty() {
-                return Err(usage(format!(
-                    "--executor slurm runs the scenes of a scene matrix, and {} declares no `scenes:`",
-                    p.file.display()
-                )));
+                return Err(ExecutorError::NoScenes(p.file.clone()).into());
             }
             if !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several)) {
                 let exec = ExecOptions {
@@ -256,7 +298,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                     run: opts,
                     set: pipeline.set.clone(),
                 };
-                return executor::run_scenes(p, &exec).map_err(usage_if_selection);
+                return Ok(executor::run_scenes(p, &exec)?);
             }
             cmd_run(p, &opts)
         }
@@ -293,44 +335,17 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
 }
 
 fn cmd_run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<i32> {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()?;
-    let rep = rt
-        .block_on(runner::run(p, opts))
-        .map_err(usage_if_selection)?;
+    let rep = runner::run_blocking(p, opts)?;
     print!("{}", runner::summary(&rep));
     Ok(if rep.failed { 1 } else { 0 })
-}
-
-/// Selection problems (unknown stage or scene, impossible combinations) are usage errors.
-fn usage_if_selection(e: anyhow::Error) -> anyhow::Error {
-    let msg = format!("{e:#}");
-    if msg.contains("no stage named")
-        || msg.contains("no scene named")
-        || msg.contains("declares no scenes")
-        || msg.contains("cannot be combined")
-        || msg.contains("cannot run only")
-    {
-        usage(msg)
-    } else {
-        e
-    }
 }
 
 fn cmd_status(p: &Pipeline, verify: bool, scenes: &[String]) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open_existing(&p.cache_dir);
     let res = runner::resolve(p, &dag, &store, verify)?;
-    for sc in scenes {
-        if !p.scenes.contains(sc) {
-            return Err(usage(format!(
-                "--scene {sc}: no scene named `{sc}` in {} (scenes: {})",
-                p.file.display(),
-                p.scenes.join(", ")
-            )));
-        }
+    if !scenes.is_empty() {
+        runner::check_scenes(p, scenes)?;
     }
     let shown = |i: usize| {
         scenes.is_empty()
@@ -428,7 +443,7 @@ fn cmd_dag(p: &Pipeline, dot: bool) -> Result<i32> {
 }
 
 /// The verified manifest of a fresh stage, or a usage error saying how to make it fresh.
-fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<crate::store::Manifest>)> {
+fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<Manifest>)> {
     let i = p
         .index_of(stage)
         .ok_or_else(|| usage(format!("no stage named `{stage}` in {}", p.file.display())))?;
@@ -488,7 +503,8 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
             .columns()
             .iter()
             .map(|c| ArrayFormatter::try_new(c.as_ref(), &opts))
-            .collect::<Result<Vec<_>, _>>()?;
+            .collect::<Result<Vec<_>, _>>()
+            .context("formatting the table")?;
         let header: Vec<&str> = batch
             .schema_ref()
             .fields()
@@ -538,7 +554,7 @@ fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
 fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
     let dag = Dag::build(p)?;
     let store = Store::open(&p.cache_dir)?;
-    let _lock = crate::store::RunLock::acquire(store.root(), false, true)?;
+    let _lock = RunLock::acquire(store.root(), false, true)?;
     let res = runner::resolve(p, &dag, &store, false)?;
     let mut keep: BTreeSet<String> = res
         .iter()
@@ -573,11 +589,7 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
                 .join(", ")
         ))
     })?;
-    let set = args
-        .set
-        .iter()
-        .map(|s| Override::parse(s).map_err(usage))
-        .collect::<Result<Vec<_>>>()?;
+    let set = overrides(args)?;
     let out = out.unwrap_or_else(|| PathBuf::from("bench-results").join(&suite.name));
     let opts = bench::BenchOptions {
         base_file: args.file.clone(),
@@ -588,7 +600,7 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
         jobs,
     };
     let done = bench::run(&opts)?;
-    let ran = bench::count(&done.report, Outcome::Ran);
+    let ran = done.report.count(Outcome::Ran);
     println!(
         "bench `{}`: {} stages ({ran} ran, {} cached), {} result rows, {}",
         opts.suite.name,
@@ -636,18 +648,9 @@ fn cmd_kinds(only: Option<&str>) -> Result<i32> {
         println!();
     }
     if shown == 0 {
-        bail!(UsageError(format!(
-            "no stage kind `{}`",
-            only.unwrap_or("")
-        )));
+        return Err(usage(format!("no stage kind `{}`", only.unwrap_or(""))));
     }
     Ok(0)
-}
-
-/// Whether an error is a usage/configuration error (exit code 2).
-pub fn is_usage_error(e: &anyhow::Error) -> bool {
-    e.chain()
-        .any(|c| c.is::<UsageError>() || c.is::<config::ConfigError>())
 }
 
 /// Used by tests and callers that want the corrupt/fresh state of one entry.

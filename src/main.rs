@@ -2,18 +2,15 @@
 //! codes: 0 ok, 1 a stage failed (or the work could not be done), 2 bad usage or configuration.
 
 use clap::Parser;
+use pipe::error::Classify;
 
 fn main() {
     let cli = pipe::cli::Cli::parse();
     let code = match pipe::cli::dispatch(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
-            if pipe::cli::is_usage_error(&e) {
-                2
-            } else {
-                1
-            }
+            eprintln!("error: {}", pipe::error::chain(&e));
+            e.exit_code()
         }
     };
     std::process::exit(code);

@@ -1,6 +1,8 @@
 //! Turns a suite and a base pipeline into one ordinary pipeline file: for every (scene,
-//! variant, budget) the base stages up to `evaluate`, with the suite's parameter overrides
-//! applied. Stage instances whose kind, parameters and inputs are equal across runs are
+//! variant, budget) the base stages up to the one whose kind scores methods
+//! (`Stage::scores`, e.g. `evaluate`), with the suite's parameter overrides applied and the
+//! budget set on the parameter the registry names (`Stage::budget_param`, e.g. training
+//! iterations). Stage instances whose kind, parameters and inputs are equal across runs are
 //! declared once (the scene and rays of a scene are shared by every variant and budget), so the
 //! runner computes each once and the cache shares everything else.
 //!
@@ -14,9 +16,10 @@ use std::{
 
 use serde_json::Value;
 use serde_yaml::{Mapping, Value as Yaml};
+use stages::ScoreSpec;
 
-use super::suite::{Setting, Suite};
-use crate::config::{ConfigError, Loc};
+use super::suite::{Setting, Suite, Variant};
+use crate::config::{set_path, ConfigError, Loc};
 
 /// One (scene, variant, budget) combination and the stage instances that compute it.
 #[derive(Debug, Clone)]
@@ -38,8 +41,10 @@ pub struct Plan {
     pub roles: Vec<String>,
     /// The role whose wall time is the training time (the stage `budget_param` names).
     pub train_role: String,
-    /// The role that writes the `metrics` table.
+    /// The role whose kind scores methods: it writes the score table.
     pub eval_role: String,
+    /// How that score table reads.
+    pub spec: &'static ScoreSpec,
     /// Variants left out, with the reason (optional ones this build cannot express).
     pub skipped: Vec<(String, String)>,
 }
@@ -137,24 +142,7 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
     Ok(())
 }
 
-/// Sets `path` inside a params mapping, creating mappings on the way.
-pub(crate) fn set_path(params: &mut Yaml, path: &[&str], value: &Yaml) {
-    if !matches!(params, Yaml::Mapping(_)) {
-        *params = Yaml::Mapping(Mapping::new());
-    }
-    let Yaml::Mapping(m) = params else {
-        unreachable!()
-    };
-    let key = Yaml::String(path[0].to_string());
-    if path.len() == 1 {
-        m.insert(key, value.clone());
-    } else {
-        let child = m.entry(key).or_insert(Yaml::Null);
-        set_path(child, &path[1..], value);
-    }
-}
-
-/// Base stages in dependency order, restricted to `evaluate`'s ancestors and itself.
+/// Base stages in dependency order, restricted to the scoring stage's ancestors and itself.
 fn kept_roles(base: &[BaseStage], eval: &str) -> Vec<String> {
     let mut keep = BTreeSet::new();
     let mut todo = vec![eval.to_string()];
@@ -183,63 +171,108 @@ fn kept_roles(base: &[BaseStage], eval: &str) -> Vec<String> {
     order
 }
 
-/// Builds the bench pipeline for `suite` from the base pipeline text (`base_file` already
-/// validated by `config::load`), writing entries to `cache_dir`.
-pub fn build(
-    suite: &Suite,
-    base_file: &Path,
-    base_text: &str,
-    extra: &[Setting],
-    cache_dir: &Path,
-) -> Result<Plan, ConfigError> {
-    let base = base_stages(base_text);
-    let evals: Vec<&BaseStage> = base.iter().filter(|s| s.kind == "evaluate").collect();
-    let eval_role = match evals.as_slice() {
-        [one] => one.name.clone(),
-        _ => {
-            return Err(ConfigError {
-                file: base_file.to_path_buf(),
-                loc: Loc::Unknown,
-                stage: None,
-                key: None,
-                message: format!(
-                    "pipe bench needs a pipeline with exactly one `evaluate` stage, found {}",
-                    evals.len()
-                ),
-            })
-        }
-    };
-    let roles = kept_roles(&base, &eval_role);
-    let train_role = suite
-        .budget_param
-        .key
-        .split('.')
-        .next()
-        .unwrap_or_default()
-        .to_string();
-    for s in suite
-        .set
+fn base_err(base_file: &Path, message: String) -> ConfigError {
+    ConfigError {
+        file: base_file.to_path_buf(),
+        loc: Loc::Unknown,
+        stage: None,
+        key: None,
+        message,
+    }
+}
+
+/// Names of the registry's kinds for which `has` holds (for messages).
+fn kinds_with(has: impl Fn(&dyn stages::Stage) -> bool) -> String {
+    let names: Vec<&str> = stages::registry()
         .iter()
-        .chain(extra)
-        .chain(suite.scenes.iter().flat_map(|s| &s.set))
-        .chain([&suite.budget_param])
-    {
-        check_key(&base, base_file, &s.key).map_err(|m| cfg_err(suite, s, m))?;
+        .filter(|k| has(k.as_ref()) && !k.kind().starts_with("test_"))
+        .map(|k| k.kind())
+        .collect();
+    names.join(", ")
+}
+
+/// The base stage whose kind scores methods, and how its score table reads.
+fn scoring_role(
+    base: &[BaseStage],
+    base_file: &Path,
+) -> Result<(String, &'static ScoreSpec), ConfigError> {
+    let scoring: Vec<(&BaseStage, &'static ScoreSpec)> = base
+        .iter()
+        .filter_map(|s| Some((s, stages::find(&s.kind)?.scores()?)))
+        .collect();
+    match scoring.as_slice() {
+        [(one, spec)] => Ok((one.name.clone(), spec)),
+        _ => Err(base_err(
+            base_file,
+            format!(
+                "pipe bench needs a pipeline with exactly one stage whose kind scores methods (kinds: {}), found {}",
+                kinds_with(|k| k.scores().is_some()),
+                scoring.len()
+            ),
+        )),
     }
-    if !roles.contains(&train_role) {
-        return Err(cfg_err(
-            suite,
-            &suite.budget_param,
-            format!("stage `{train_role}` does not feed `{eval_role}`"),
-        ));
+}
+
+/// The setting the budget goes to: the suite's `budget_param`, else `ROLE.PARAM` of the one
+/// kept stage whose kind names a budget parameter.
+fn budget_setting(
+    suite: &Suite,
+    base: &[BaseStage],
+    roles: &[String],
+    base_file: &Path,
+) -> Result<Setting, ConfigError> {
+    if let Some(s) = &suite.budget_param {
+        return Ok(s.clone());
     }
+    let with_budget: Vec<String> = roles
+        .iter()
+        .filter_map(|r| {
+            let s = base.iter().find(|s| &s.name == r)?;
+            Some(format!("{r}.{}", stages::find(&s.kind)?.budget_param()?))
+        })
+        .collect();
+    match with_budget.as_slice() {
+        [one] => Ok(Setting {
+            key: one.clone(),
+            value: Yaml::Null,
+            loc: Loc::Unknown,
+            path: "budget_param".into(),
+        }),
+        _ => Err(ConfigError {
+            file: suite.file.clone(),
+            loc: Loc::Unknown,
+            stage: None,
+            key: Some("budget_param".into()),
+            message: format!(
+                "missing: {} stages of {} have a budget parameter (kinds with one: {}){}; name the one to vary as `budget_param: STAGE.PARAM`",
+                with_budget.len(),
+                base_file.display(),
+                kinds_with(|k| k.budget_param().is_some()),
+                if with_budget.is_empty() {
+                    String::new()
+                } else {
+                    format!(": {}", with_budget.join(", "))
+                }
+            ),
+        }),
+    }
+}
+
+/// The variants this build can express, and those left out (optional ones naming a parameter
+/// it lacks) with why.
+#[allow(clippy::type_complexity)]
+fn usable_variants<'a>(
+    suite: &'a Suite,
+    base: &[BaseStage],
+    base_file: &Path,
+) -> Result<(Vec<&'a Variant>, Vec<(String, String)>), ConfigError> {
     let mut skipped = Vec::new();
     let mut variants = Vec::new();
     for v in &suite.variants {
         let bad = v
             .set
             .iter()
-            .find_map(|s| check_key(&base, base_file, &s.key).err().map(|m| (s, m)));
+            .find_map(|s| check_key(base, base_file, &s.key).err().map(|m| (s, m)));
         match bad {
             Some((s, m)) if v.optional => {
                 skipped.push((v.label.clone(), format!("`{}`: {m}", s.key)));
@@ -248,15 +281,27 @@ pub fn build(
             None => variants.push(v),
         }
     }
+    Ok((variants, skipped))
+}
 
-    // Every run's stages, with overrides applied; identity = kind + params + upstream identity.
-    struct Combo {
-        scene: String,
-        variant: String,
-        budget: u64,
-        params: BTreeMap<String, Yaml>,
-        identity: BTreeMap<String, String>,
-    }
+/// One run's stages, with overrides applied; identity = kind + params + upstream identity.
+struct Combo {
+    scene: String,
+    variant: String,
+    budget: u64,
+    params: BTreeMap<String, Yaml>,
+    identity: BTreeMap<String, String>,
+}
+
+/// Every (scene, variant, budget) of the suite, with its params and the identity of each role.
+fn combos(
+    suite: &Suite,
+    base: &[BaseStage],
+    roles: &[String],
+    variants: &[&Variant],
+    extra: &[Setting],
+    budget_param: &Setting,
+) -> Vec<Combo> {
     let mut combos = Vec::new();
     for sc in &suite.scenes {
         for v in variants.iter().filter(|v| v.scenes.contains(&sc.name)) {
@@ -267,7 +312,7 @@ pub fn build(
                     .collect();
                 let budget = Setting {
                     value: Yaml::Number(b.into()),
-                    ..suite.budget_param.clone()
+                    ..budget_param.clone()
                 };
                 for s in suite
                     .set
@@ -282,7 +327,7 @@ pub fn build(
                     set_path(p, &path[1..], &s.value);
                 }
                 let mut identity = BTreeMap::new();
-                for r in &roles {
+                for r in roles {
                     let s = base.iter().find(|s| &s.name == r).expect("role");
                     let ups: BTreeMap<&String, &String> = s
                         .inputs
@@ -307,29 +352,41 @@ pub fn build(
             }
         }
     }
+    combos
+}
 
-    // A role depends on the variant (budget) if two runs differing only in it differ there.
-    let depends = |role: &str, on_variant: bool| {
-        combos.iter().any(|a| {
-            combos.iter().any(|b| {
-                a.scene == b.scene
-                    && if on_variant {
-                        a.budget == b.budget && a.variant != b.variant
-                    } else {
-                        a.variant == b.variant && a.budget != b.budget
-                    }
-                    && a.identity[role] != b.identity[role]
-            })
+/// Whether a role depends on the variant (`on_variant`) or the budget: two runs differing
+/// only in it differ there.
+fn depends(combos: &[Combo], role: &str, on_variant: bool) -> bool {
+    combos.iter().any(|a| {
+        combos.iter().any(|b| {
+            a.scene == b.scene
+                && if on_variant {
+                    a.budget == b.budget && a.variant != b.variant
+                } else {
+                    a.variant == b.variant && a.budget != b.budget
+                }
+                && a.identity[role] != b.identity[role]
         })
-    };
-    let by_variant: BTreeMap<&String, bool> = roles.iter().map(|r| (r, depends(r, true))).collect();
-    let by_budget: BTreeMap<&String, bool> = roles.iter().map(|r| (r, depends(r, false))).collect();
+    })
+}
 
+/// The stage declarations of the generated pipeline (each distinct instance once) and the runs
+/// with their instance names.
+fn instances(base: &[BaseStage], roles: &[String], combos: &[Combo]) -> (Mapping, Vec<Run>) {
+    let by_variant: BTreeMap<&String, bool> = roles
+        .iter()
+        .map(|r| (r, depends(combos, r, true)))
+        .collect();
+    let by_budget: BTreeMap<&String, bool> = roles
+        .iter()
+        .map(|r| (r, depends(combos, r, false)))
+        .collect();
     let mut stages_out = Mapping::new();
     let mut runs = Vec::new();
-    for c in &combos {
+    for c in combos {
         let mut names = BTreeMap::new();
-        for r in &roles {
+        for r in roles {
             let mut n = format!("{r}-{}", c.scene);
             if by_variant[r] {
                 n.push_str(&format!("-{}", c.variant));
@@ -365,6 +422,47 @@ pub fn build(
             instances: names,
         });
     }
+    (stages_out, runs)
+}
+
+/// Builds the bench pipeline for `suite` from the base pipeline text (`base_file` already
+/// validated by `config::load`), writing entries to `cache_dir`.
+pub fn build(
+    suite: &Suite,
+    base_file: &Path,
+    base_text: &str,
+    extra: &[Setting],
+    cache_dir: &Path,
+) -> Result<Plan, ConfigError> {
+    let base = base_stages(base_text);
+    let (eval_role, spec) = scoring_role(&base, base_file)?;
+    let roles = kept_roles(&base, &eval_role);
+    let budget_param = budget_setting(suite, &base, &roles, base_file)?;
+    let train_role = budget_param
+        .key
+        .split('.')
+        .next()
+        .unwrap_or_default()
+        .to_string();
+    for s in suite
+        .set
+        .iter()
+        .chain(extra)
+        .chain(suite.scenes.iter().flat_map(|s| &s.set))
+        .chain([&budget_param])
+    {
+        check_key(&base, base_file, &s.key).map_err(|m| cfg_err(suite, s, m))?;
+    }
+    if !roles.contains(&train_role) {
+        return Err(cfg_err(
+            suite,
+            &budget_param,
+            format!("stage `{train_role}` does not feed `{eval_role}`"),
+        ));
+    }
+    let (variants, skipped) = usable_variants(suite, &base, base_file)?;
+    let combos = combos(suite, &base, &roles, &variants, extra, &budget_param);
+    let (stages_out, runs) = instances(&base, &roles, &combos);
     let mut doc = Mapping::new();
     doc.insert(
         "cache".into(),
@@ -384,6 +482,7 @@ pub fn build(
         roles,
         train_role,
         eval_role,
+        spec,
         skipped,
     })
 }
@@ -416,6 +515,27 @@ mod tests {
         let t = &pipe.stages[pipe.index_of("train-a-nod-b10").unwrap()];
         assert_eq!(t.params["train"]["losses"]["depth"], 0.0);
         assert_eq!(t.params["train"]["iterations"], 10);
+    }
+
+    #[test]
+    fn the_scoring_stage_and_the_budget_come_from_the_registry() {
+        let s = suite("  - {name: full}\n");
+        assert!(s.budget_param.is_none());
+        let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
+        assert_eq!(
+            (p.eval_role.as_str(), p.train_role.as_str()),
+            ("evaluate", "train")
+        );
+        assert_eq!(p.spec.table, "metrics");
+        let pipe = crate::config::parse(Path::new("gen.yaml"), &p.yaml, &[]).unwrap();
+        let t = &pipe.stages[pipe.index_of("train-a-b5").unwrap()];
+        assert_eq!(t.params["train"]["iterations"], 5);
+        let no_eval = BASE.split("  evaluate:").next().unwrap();
+        let e = build(&s, Path::new("p.yaml"), no_eval, &[], Path::new("/c")).unwrap_err();
+        assert!(
+            e.to_string().starts_with("p.yaml: pipe bench needs a pipeline with exactly one stage whose kind scores methods (kinds: evaluate), found 0"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1,15 +1,17 @@
-//! PNG plots of the bench: per scene, mIoU, PQ and depth RMSE against training wall time, one
-//! line per variant and the 2D baselines as flat lines. Drawn with plotters' bitmap backend;
+//! PNG plots of the bench: per scene, the score spec's plotted metrics (e.g. mIoU, PQ and depth
+//! RMSE) against training wall time, one line per variant and the baselines that do not depend
+//! on the budget as flat lines. Drawn with plotters' bitmap backend;
 //! text comes from the public-domain 8x8 glyphs of `font8x8` (no font files, no font stack).
 
-use anyhow::{anyhow, Result};
 use plotters::prelude::*;
 use plotters_backend::{
     text_anchor::{HPos, VPos},
     BackendColor, BackendCoord, BackendStyle, BackendTextStyle, DrawingErrorKind,
 };
 
-use super::results::Row;
+use stages::ScoreSpec;
+
+use super::{error::BenchError, results::Row};
 
 /// A bitmap backend that draws text itself from 8x8 glyphs.
 struct Canvas<'a>(BitMapBackend<'a>);
@@ -169,8 +171,8 @@ const COLORS: [RGBColor; 10] = [
     RGBColor(127, 127, 127),
 ];
 
-fn draw_err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
-    anyhow!("drawing a plot: {e:?}")
+fn draw_err<E: std::fmt::Debug>(e: E) -> BenchError {
+    BenchError::Plot(format!("{e:?}"))
 }
 
 /// The corner whose legend box would cover the fewest points of the panel's lines (sampled along
@@ -220,7 +222,7 @@ fn legend_corner(panel: &Panel, x_max: f64, y_min: f64, y_max: f64) -> SeriesLab
 }
 
 /// Draws the panels side by side and encodes the image as PNG.
-pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
+pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>, BenchError> {
     let (pw, h) = (440u32, 380u32);
     let w = pw * panels.len().max(1) as u32;
     let mut buf = vec![255u8; (w * h * 3) as usize];
@@ -289,26 +291,23 @@ pub fn render_png(title: &str, panels: &[Panel]) -> Result<Vec<u8>> {
         }
         root.present().map_err(draw_err)?;
     }
-    let img = image::RgbImage::from_raw(w, h, buf).ok_or_else(|| anyhow!("plot buffer size"))?;
+    let img = image::RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| BenchError::Plot("plot buffer size".into()))?;
     let mut png = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .map_err(BenchError::Png)?;
     Ok(png)
 }
 
-/// The time-vs-error panels of one scene: mIoU and PQ in %, depth RMSE in metres. `variants`
-/// are (name, label, whether its semantic metrics mean anything); `baselines` (method, label)
-/// are drawn flat in grey.
+/// The time-vs-error panels of one scene, one per plotted metric of `spec` (scaled as the spec
+/// says). `variants` are (name, label, whether its semantic metrics mean anything); the
+/// baselines that do not depend on the budget are drawn flat in grey.
 pub fn time_vs_error(
     rows: &[Row],
     scene: &str,
     variants: &[(String, String, bool)],
-    baselines: &[(&str, &str)],
+    spec: &ScoreSpec,
 ) -> Vec<Panel> {
-    let metrics = [
-        ("miou", "mIoU, %", 100.0),
-        ("pq", "PQ, %", 100.0),
-        ("depth_rmse", "depth RMSE, m", 1.0),
-    ];
     let any_curve = variants.iter().any(|(name, ..)| {
         let budgets: std::collections::BTreeSet<u64> = rows
             .iter()
@@ -317,12 +316,18 @@ pub fn time_vs_error(
             .collect();
         budgets.len() >= 2
     });
-    metrics
+    let flat: Vec<_> = spec
+        .baselines
         .iter()
-        .map(|&(metric, title, scale)| {
+        .filter(|b| !b.depends_on_budget)
+        .collect();
+    spec.plotted
+        .iter()
+        .filter_map(|&metric| spec.metric(metric))
+        .map(|m| {
             let mut series = Vec::new();
             for (k, (name, label, semantic)) in variants.iter().enumerate() {
-                if !semantic && metric != "depth_rmse" {
+                if !semantic && m.semantic {
                     continue;
                 }
                 let mut points: Vec<(f64, f64)> = rows
@@ -330,10 +335,10 @@ pub fn time_vs_error(
                     .filter(|r| {
                         r.scene == scene
                             && &r.variant == name
-                            && r.method == "panoptic_nerf"
-                            && r.metric == metric
+                            && r.method == spec.method
+                            && r.metric == m.name
                     })
-                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * scale)))
+                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * m.scale)))
                     .collect();
                 points.sort_by(|a, b| a.0.total_cmp(&b.0));
                 // Variants run at one budget only belong to the ablation table, not here.
@@ -346,22 +351,22 @@ pub fn time_vs_error(
                     });
                 }
             }
-            for (k, &(method, label)) in baselines.iter().enumerate() {
+            for (k, b) in flat.iter().enumerate() {
                 let v = rows
                     .iter()
-                    .find(|r| r.scene == scene && r.method == method && r.metric == metric)
+                    .find(|r| r.scene == scene && r.method == b.name && r.metric == m.name)
                     .and_then(|r| r.value);
                 if let Some(v) = v {
                     series.push(Series {
-                        label: label.to_string(),
-                        points: vec![(0.0, v * scale)],
+                        label: b.label.to_string(),
+                        points: vec![(0.0, v * m.scale)],
                         flat: true,
                         color: k,
                     });
                 }
             }
             Panel {
-                title: title.to_string(),
+                title: format!("{}, {}", m.label, m.unit),
                 series,
             }
         })

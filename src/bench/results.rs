@@ -1,18 +1,17 @@
 //! The bench's results in long form, one row per (scene, variant, budget, method, metric), read
-//! from the cache after the run: the `evaluate` stage's `metrics` table, and each stage's wall
-//! time, CPU time and peak RSS from its manifest (method `stage:ROLE`). Written as
-//! `results.parquet` (readable with pandas / pyarrow).
+//! from the cache after the run: the scoring stage's score table (`ScoreSpec::table`, columns
+//! method, metric, value), and each stage's wall time, CPU time and peak RSS from its manifest
+//! (method `stage:ROLE`). Written as `results.parquet` (readable with pandas / pyarrow).
 
 use std::{collections::BTreeMap, sync::Arc};
 
-use anyhow::{anyhow, Context, Result};
 use arrow::{
     array::{Array, ArrayRef, Float64Array, StringArray, UInt64Array},
     datatypes::{DataType, Field, Schema},
     record_batch::RecordBatch,
 };
 
-use super::plan::Plan;
+use super::{error::BenchError, plan::Plan};
 use crate::store::{Entry, Manifest, Store};
 
 /// One result.
@@ -35,24 +34,40 @@ pub const STAGE_PREFIX: &str = "stage:";
 pub type Manifests = BTreeMap<String, Box<Manifest>>;
 
 /// The manifest of every stage instance of the plan, from the run's keys.
-pub fn manifests(store: &Store, keys: &BTreeMap<String, String>) -> Result<Manifests> {
+pub fn manifests(store: &Store, keys: &BTreeMap<String, String>) -> Result<Manifests, BenchError> {
     keys.iter()
         .map(|(stage, key)| match store.check(key, false) {
             Entry::Valid(m) => Ok((stage.clone(), m)),
-            Entry::Missing => Err(anyhow!("stage `{stage}`: cache entry {key} is missing")),
-            Entry::Corrupt(why) => Err(anyhow!("stage `{stage}`: cache entry corrupt: {why}")),
+            Entry::Missing => Err(BenchError::MissingEntry {
+                stage: stage.clone(),
+                key: key.clone(),
+            }),
+            Entry::Corrupt(why) => Err(BenchError::CorruptEntry {
+                stage: stage.clone(),
+                why,
+            }),
         })
         .collect()
 }
 
-fn strings<'a>(b: &'a RecordBatch, col: &str) -> Result<&'a StringArray> {
+fn column<'a, T: 'static>(
+    b: &'a RecordBatch,
+    table: &str,
+    col: &str,
+    ty: &'static str,
+) -> Result<&'a T, BenchError> {
     b.column_by_name(col)
-        .and_then(|c| c.as_any().downcast_ref::<StringArray>())
-        .ok_or_else(|| anyhow!("metrics table: no utf8 column `{col}`"))
+        .and_then(|c| c.as_any().downcast_ref::<T>())
+        .ok_or_else(|| BenchError::ScoreColumn {
+            table: table.to_string(),
+            ty,
+            column: col.to_string(),
+        })
 }
 
 /// Every row of the bench, in plan order.
-pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>> {
+pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>, BenchError> {
+    let table = plan.spec.table;
     let mut rows = Vec::new();
     for run in &plan.runs {
         let train_wall_s = m[&run.instances[&plan.train_role]].wall_s;
@@ -66,17 +81,17 @@ pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>> {
             train_wall_s,
         };
         let eval = &m[&run.instances[&plan.eval_role]];
-        let tables = store
-            .load(eval)
-            .with_context(|| format!("loading {}", run.instances[&plan.eval_role]))?;
-        let t = tables
-            .get("metrics")
-            .ok_or_else(|| anyhow!("stage `{}` wrote no `metrics` table", plan.eval_role))?;
-        let (method, metric) = (strings(t, "method")?, strings(t, "metric")?);
-        let value = t
-            .column_by_name("value")
-            .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
-            .ok_or_else(|| anyhow!("metrics table: no float64 column `value`"))?;
+        let tables = store.load(eval).map_err(|source| BenchError::Load {
+            stage: run.instances[&plan.eval_role].clone(),
+            source,
+        })?;
+        let t = tables.get(table).ok_or_else(|| BenchError::NoScoreTable {
+            stage: plan.eval_role.clone(),
+            table: table.to_string(),
+        })?;
+        let method = column::<StringArray>(t, table, "method", "utf8")?;
+        let metric = column::<StringArray>(t, table, "metric", "utf8")?;
+        let value = column::<Float64Array>(t, table, "value", "float64")?;
         for i in 0..t.num_rows() {
             let v = (!value.is_null(i)).then(|| value.value(i));
             rows.push(row(method.value(i), metric.value(i), v));
@@ -117,7 +132,7 @@ pub fn value(
 }
 
 /// The rows as one Arrow batch (the schema of `results.parquet`).
-pub fn to_batch(rows: &[Row]) -> Result<RecordBatch> {
+pub fn to_batch(rows: &[Row]) -> Result<RecordBatch, BenchError> {
     let schema = Schema::new(vec![
         Field::new("scene", DataType::Utf8, false),
         Field::new("variant", DataType::Utf8, false),

@@ -1,6 +1,7 @@
 //! A bench suite file (`benches/suites/*.yaml`): which scenes, which training budgets and which
-//! variants `pipe bench` runs. Parsed strictly (unknown keys are errors); every error names the
-//! suite file, the line and column where known, and the key.
+//! variants `pipe bench` runs, and published figures to show beside them. Parsed strictly
+//! (unknown keys are errors); every error names the suite file, the line and column where
+//! known, and the key.
 //!
 //! ```yaml
 //! name: quick
@@ -8,8 +9,13 @@
 //! scenes:
 //!   - {name: tiny0, set: {scene.seed: 0, scene.frames: 6}}
 //! budgets: [50, 150, 400]                     # values of `budget_param`
+//! budget_param: train.train.iterations        # optional: the budget parameter of the stage
+//!                                             # whose kind has one (`Stage::budget_param`)
+//! paper:                                      # optional: what the variants' `paper:` are
+//!   column: paper                             # the ablation table's column (default `paper`)
+//!   note: The last column is the paper's figure (RMSE / delta / mIoU).
 //! variants:
-//!   - {name: complete}
+//!   - {name: complete, paper: "5.23 / 95.1 / 81.4"}
 //!   - {name: no_depth, label: "w/o L_depth", set: {train.train.losses.depth: 0}, budgets: [400]}
 //! ```
 //!
@@ -37,10 +43,6 @@ pub const BUILT_IN: &[(&str, &str, &str)] = &[
     ),
 ];
 
-fn default_budget_param() -> String {
-    "train.train.iterations".into()
-}
-
 fn yes() -> bool {
     true
 }
@@ -55,10 +57,12 @@ struct SuiteFile {
     set: Mapping,
     scenes: Vec<SceneFile>,
     budgets: Vec<u64>,
-    #[serde(default = "default_budget_param")]
-    budget_param: String,
+    #[serde(default)]
+    budget_param: Option<String>,
     #[serde(default)]
     ablation_budget: Option<u64>,
+    #[serde(default)]
+    paper: Option<PaperFile>,
     variants: Vec<VariantFile>,
     #[serde(default)]
     overhead_repeats: Option<usize>,
@@ -70,6 +74,14 @@ struct SceneFile {
     name: String,
     #[serde(default)]
     set: Mapping,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PaperFile {
+    #[serde(default)]
+    column: Option<String>,
+    note: String,
 }
 
 #[derive(Debug, Deserialize)]
@@ -88,6 +100,8 @@ struct VariantFile {
     optional: bool,
     #[serde(default = "yes")]
     semantics: bool,
+    #[serde(default)]
+    paper: Option<String>,
 }
 
 /// One parameter override: `stage.param.field...` = value, and where it was written.
@@ -120,8 +134,19 @@ pub struct Variant {
     pub scenes: Vec<String>,
     /// Skip (with a note) rather than fail when this build lacks one of its parameters.
     pub optional: bool,
-    /// False when the semantic outputs are meaningless (photometric-only): tables show only depth.
+    /// False when the semantic outputs are meaningless (photometric-only): tables show only
+    /// the metrics that need no labels.
     pub semantics: bool,
+    /// The published figures of this variant, shown beside the ablation (see [`Paper`]).
+    pub paper: Option<String>,
+}
+
+/// What the variants' `paper:` figures are: the ablation table's column heading and a note
+/// printed above the table.
+#[derive(Debug, Clone)]
+pub struct Paper {
+    pub column: String,
+    pub note: String,
 }
 
 /// A validated suite.
@@ -136,8 +161,10 @@ pub struct Suite {
     pub set: Vec<Setting>,
     pub scenes: Vec<Scene>,
     pub budgets: Vec<u64>,
-    pub budget_param: Setting,
+    /// `budget_param:`; `None`: the budget parameter of the base stage whose kind has one.
+    pub budget_param: Option<Setting>,
     pub ablation_budget: u64,
+    pub paper: Option<Paper>,
     pub variants: Vec<Variant>,
     pub overhead_repeats: usize,
 }
@@ -172,34 +199,33 @@ fn valid_name(n: &str) -> bool {
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
 }
 
-/// Parses and validates suite text (`file` is used in messages).
-pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
-    let locs = Locations::scan(text);
-    let err = |loc: Loc, key: Option<&str>, msg: String| ConfigError {
-        file: file.to_path_buf(),
-        loc,
-        stage: None,
-        key: key.map(String::from),
-        message: msg,
-    };
-    let raw: SuiteFile = serde_yaml::from_str(text).map_err(|e| {
-        let loc = e.location().map_or(Loc::Unknown, |l| Loc::File {
-            line: l.line(),
-            col: l.column(),
-        });
-        let msg = e.to_string();
-        let msg = msg.split(" at line ").next().unwrap_or(&msg).to_string();
-        err(loc, None, format!("invalid suite: {msg}"))
-    })?;
-    let settings = |m: &Mapping, base: &str| -> Result<Vec<Setting>, ConfigError> {
+/// The suite file being parsed: its name and where its keys stand.
+struct Cx<'a> {
+    file: &'a Path,
+    locs: Locations,
+}
+
+impl Cx<'_> {
+    fn err(&self, loc: Loc, key: Option<&str>, msg: String) -> ConfigError {
+        ConfigError {
+            file: self.file.to_path_buf(),
+            loc,
+            stage: None,
+            key: key.map(String::from),
+            message: msg,
+        }
+    }
+
+    /// The `set:` mapping at key path `base`, each key checked for its shape.
+    fn settings(&self, m: &Mapping, base: &str) -> Result<Vec<Setting>, ConfigError> {
         m.iter()
             .map(|(k, v)| {
                 let key = k.as_str().unwrap_or("?").to_string();
                 let path = format!("{base}.{key}");
-                let loc = locs.key(&path);
+                let loc = self.locs.key(&path);
                 let parts: Vec<&str> = key.split('.').collect();
                 if parts.len() < 2 || parts.iter().any(|p| p.is_empty()) {
-                    return Err(err(
+                    return Err(self.err(
                         loc,
                         Some(&path),
                         format!("`{key}`: expected STAGE.PARAM[.FIELD...]"),
@@ -213,71 +239,127 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
                 })
             })
             .collect()
-    };
-    let check_name = |what: &str, path: &str, n: &str| {
+    }
+
+    fn check_name(&self, what: &str, path: &str, n: &str) -> Result<(), ConfigError> {
         if valid_name(n) {
             Ok(())
         } else {
-            Err(err(
-                locs.value(path),
+            Err(self.err(
+                self.locs.value(path),
                 Some(path),
                 format!("bad {what} name {n:?}: use letters, digits, `_` and `-`"),
             ))
         }
+    }
+
+    fn check_budgets(&self, budgets: &[u64], path: &str) -> Result<(), ConfigError> {
+        if budgets.is_empty() || budgets.contains(&0) {
+            return Err(self.err(
+                self.locs.key(path),
+                Some(path),
+                "expected a list of budgets > 0".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Parses and validates suite text (`file` is used in messages).
+pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
+    let cx = Cx {
+        file,
+        locs: Locations::scan(text),
     };
+    let raw: SuiteFile = serde_yaml::from_str(text).map_err(|e| {
+        let (loc, msg) = cx.locs.serde_error(&e);
+        cx.err(loc, None, format!("invalid suite: {msg}"))
+    })?;
     if raw.scenes.is_empty() {
-        return Err(err(locs.key("scenes"), Some("scenes"), "no scenes".into()));
+        return Err(cx.err(cx.locs.key("scenes"), Some("scenes"), "no scenes".into()));
     }
     if raw.variants.is_empty() {
-        return Err(err(
-            locs.key("variants"),
+        return Err(cx.err(
+            cx.locs.key("variants"),
             Some("variants"),
             "no variants".into(),
         ));
     }
-    if raw.budgets.is_empty() || raw.budgets.contains(&0) {
-        return Err(err(
-            locs.key("budgets"),
-            Some("budgets"),
-            "expected a list of budgets > 0".into(),
-        ));
-    }
+    cx.check_budgets(&raw.budgets, "budgets")?;
+    let scenes = scenes(&cx, &raw.scenes)?;
+    let variants = variants(&cx, &raw, &scenes)?;
+    let paper = paper(&cx, &raw)?;
+    let budget_param = match &raw.budget_param {
+        None => None,
+        Some(key) => {
+            let loc = cx.locs.value("budget_param");
+            if key.split('.').count() < 2 {
+                return Err(cx.err(
+                    loc,
+                    Some("budget_param"),
+                    format!("`{key}`: expected STAGE.PARAM[.FIELD...]"),
+                ));
+            }
+            Some(Setting {
+                key: key.clone(),
+                value: Yaml::Null,
+                loc,
+                path: "budget_param".into(),
+            })
+        }
+    };
+    Ok(Suite {
+        ablation_budget: raw
+            .ablation_budget
+            .unwrap_or_else(|| ablation_default(&raw)),
+        name: raw.name,
+        description: raw.description,
+        file: file.to_path_buf(),
+        text: text.to_string(),
+        set: cx.settings(&raw.set, "set")?,
+        scenes,
+        budgets: raw.budgets,
+        budget_param,
+        paper,
+        variants,
+        overhead_repeats: raw.overhead_repeats.unwrap_or(5).max(1),
+    })
+}
+
+fn scenes(cx: &Cx, raw: &[SceneFile]) -> Result<Vec<Scene>, ConfigError> {
     let mut scenes = Vec::new();
-    for (i, s) in raw.scenes.iter().enumerate() {
+    for (i, s) in raw.iter().enumerate() {
         let path = format!("scenes.{i}.name");
-        check_name("scene", &path, &s.name)?;
+        cx.check_name("scene", &path, &s.name)?;
         if scenes.iter().any(|x: &Scene| x.name == s.name) {
-            return Err(err(
-                locs.value(&path),
+            return Err(cx.err(
+                cx.locs.value(&path),
                 Some(&path),
                 format!("scene `{}` is listed twice", s.name),
             ));
         }
         scenes.push(Scene {
             name: s.name.clone(),
-            set: settings(&s.set, &format!("scenes.{i}.set"))?,
+            set: cx.settings(&s.set, &format!("scenes.{i}.set"))?,
         });
     }
+    Ok(scenes)
+}
+
+fn variants(cx: &Cx, raw: &SuiteFile, scenes: &[Scene]) -> Result<Vec<Variant>, ConfigError> {
     let mut variants: Vec<Variant> = Vec::new();
     for (i, v) in raw.variants.iter().enumerate() {
         let path = format!("variants.{i}.name");
-        check_name("variant", &path, &v.name)?;
+        cx.check_name("variant", &path, &v.name)?;
         if variants.iter().any(|x| x.name == v.name) {
-            return Err(err(
-                locs.value(&path),
+            return Err(cx.err(
+                cx.locs.value(&path),
                 Some(&path),
                 format!("variant `{}` is listed twice", v.name),
             ));
         }
         let budgets = v.budgets.clone().unwrap_or_else(|| raw.budgets.clone());
-        if budgets.is_empty() || budgets.contains(&0) {
-            let p = format!("variants.{i}.budgets");
-            return Err(err(
-                locs.key(&p),
-                Some(&p),
-                "expected a list of budgets > 0".into(),
-            ));
-        }
+        cx.check_budgets(&budgets, &format!("variants.{i}.budgets"))?;
         let on = v
             .scenes
             .clone()
@@ -285,8 +367,8 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         for (k, s) in on.iter().enumerate() {
             if !scenes.iter().any(|x| &x.name == s) {
                 let p = format!("variants.{i}.scenes.{k}");
-                return Err(err(
-                    locs.value(&p),
+                return Err(cx.err(
+                    cx.locs.value(&p),
                     Some(&p),
                     format!("no scene named `{s}` in this suite"),
                 ));
@@ -295,51 +377,63 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         variants.push(Variant {
             name: v.name.clone(),
             label: v.label.clone().unwrap_or_else(|| v.name.clone()),
-            set: settings(&v.set, &format!("variants.{i}.set"))?,
+            set: cx.settings(&v.set, &format!("variants.{i}.set"))?,
             budgets,
             scenes: on,
             optional: v.optional,
             semantics: v.semantics,
+            paper: v.paper.clone(),
         });
     }
-    let bp_loc = locs.value("budget_param");
-    if raw.budget_param.split('.').count() < 2 {
-        return Err(err(
-            bp_loc,
-            Some("budget_param"),
-            format!("`{}`: expected STAGE.PARAM[.FIELD...]", raw.budget_param),
-        ));
+    Ok(variants)
+}
+
+/// `paper:` of the suite, which must say what the variants' `paper:` figures are (and is
+/// only given with figures).
+fn paper(cx: &Cx, raw: &SuiteFile) -> Result<Option<Paper>, ConfigError> {
+    let with_figures = raw.variants.iter().position(|v| v.paper.is_some());
+    match (&raw.paper, with_figures) {
+        (Some(p), Some(_)) => {
+            if p.note.trim().is_empty() {
+                return Err(cx.err(
+                    cx.locs.value("paper.note"),
+                    Some("paper.note"),
+                    "expected a sentence saying what the variants' `paper:` figures are".into(),
+                ));
+            }
+            Ok(Some(Paper {
+                column: p.column.clone().unwrap_or_else(|| "paper".into()),
+                note: p.note.trim().to_string(),
+            }))
+        }
+        (None, Some(i)) => {
+            let path = format!("variants.{i}.paper");
+            Err(cx.err(
+                cx.locs.key(&path),
+                Some(&path),
+                "figures without a suite-level `paper: {note: ...}` saying what they are".into(),
+            ))
+        }
+        (Some(_), None) => Err(cx.err(
+            cx.locs.key("paper"),
+            Some("paper"),
+            "no variant has `paper:` figures".into(),
+        )),
+        (None, None) => Ok(None),
     }
-    // Default: the largest budget every variant ran at (so the table has every row), else the
-    // largest budget.
-    let ablation_budget = raw.ablation_budget.unwrap_or_else(|| {
-        let ran_at = |v: &VariantFile| v.budgets.clone().unwrap_or_else(|| raw.budgets.clone());
-        raw.budgets
-            .iter()
-            .chain(raw.variants.iter().flat_map(|v| v.budgets.iter().flatten()))
-            .filter(|b| raw.variants.iter().all(|v| ran_at(v).contains(b)))
-            .max()
-            .copied()
-            .unwrap_or_else(|| *raw.budgets.iter().max().expect("budgets checked non-empty"))
-    });
-    Ok(Suite {
-        name: raw.name,
-        description: raw.description,
-        file: file.to_path_buf(),
-        text: text.to_string(),
-        set: settings(&raw.set, "set")?,
-        scenes,
-        budgets: raw.budgets,
-        budget_param: Setting {
-            key: raw.budget_param,
-            value: Yaml::Null,
-            loc: bp_loc,
-            path: "budget_param".into(),
-        },
-        ablation_budget,
-        variants,
-        overhead_repeats: raw.overhead_repeats.unwrap_or(5).max(1),
-    })
+}
+
+/// The default ablation budget: the largest budget every variant ran at (so the table has
+/// every row), else the largest budget.
+fn ablation_default(raw: &SuiteFile) -> u64 {
+    let ran_at = |v: &VariantFile| v.budgets.clone().unwrap_or_else(|| raw.budgets.clone());
+    raw.budgets
+        .iter()
+        .chain(raw.variants.iter().flat_map(|v| v.budgets.iter().flatten()))
+        .filter(|b| raw.variants.iter().all(|v| ran_at(v).contains(b)))
+        .max()
+        .copied()
+        .unwrap_or_else(|| *raw.budgets.iter().max().expect("budgets checked non-empty"))
 }
 
 #[cfg(test)]
@@ -352,6 +446,9 @@ mod tests {
             let s = load(name).unwrap().unwrap();
             assert_eq!(&s.name, name);
             assert!(s.variants.iter().any(|v| v.name == "complete"));
+            assert!(s.paper.is_some(), "{name}: the paper's ablation figures");
+            let complete = s.variants.iter().find(|v| v.name == "complete").unwrap();
+            assert_eq!(complete.paper.as_deref(), Some("5.23 / 95.1 / 81.4"));
         }
     }
 
@@ -386,5 +483,43 @@ mod tests {
             "{e}"
         );
         assert!(load("no-such-suite").unwrap().is_none());
+    }
+
+    #[test]
+    fn paper_figures_need_a_note_saying_what_they_are() {
+        let base = "name: x\nscenes: [{name: a}]\nbudgets: [1]\n";
+        let text = format!("{base}variants:\n  - name: v\n    paper: \"1 / 2\"\n");
+        let e = parse(Path::new("s.yaml"), &text).unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("s.yaml:6:5: `variants.0.paper`: figures without"),
+            "{e}"
+        );
+        let text = format!("{base}paper: {{note: what}}\nvariants:\n  - name: v\n");
+        let e = parse(Path::new("s.yaml"), &text).unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("s.yaml:4:1: `paper`: no variant has `paper:` figures"),
+            "{e}"
+        );
+        let text =
+            format!("{base}paper: {{colum: p, note: n}}\nvariants:\n  - {{name: v, paper: a}}\n");
+        let e = parse(Path::new("s.yaml"), &text).unwrap_err();
+        assert!(
+            e.to_string().starts_with("s.yaml:4:")
+                && e.to_string().contains("unknown field `colum`"),
+            "{e}"
+        );
+        let text = format!(
+            "{base}paper: {{column: published, note: what they are}}\nvariants:\n  - {{name: v, paper: \"1 / 2\"}}\n  - {{name: w}}\n"
+        );
+        let s = parse(Path::new("s.yaml"), &text).unwrap();
+        let p = s.paper.unwrap();
+        assert_eq!(
+            (p.column.as_str(), p.note.as_str()),
+            ("published", "what they are")
+        );
+        assert_eq!(s.variants[0].paper.as_deref(), Some("1 / 2"));
+        assert_eq!(s.variants[1].paper, None);
     }
 }

@@ -8,9 +8,11 @@ use std::{
     time::Duration,
 };
 
-use anyhow::{Context, Result};
-
-use super::{Backend, Task};
+use super::{
+    backend::{Backend, Task},
+    error::ExecutorError,
+};
+use crate::error::IoContext;
 
 pub struct Local {
     exe: std::path::PathBuf,
@@ -22,9 +24,9 @@ pub struct Local {
 
 impl Local {
     /// `args`: the `pipe` arguments up to `--scene` (see [`super::task_args`]).
-    pub fn new(args: Vec<String>, jobs: usize) -> Result<Local> {
+    pub fn new(args: Vec<String>, jobs: usize) -> Result<Local, ExecutorError> {
         Ok(Local {
-            exe: std::env::current_exe().context("finding the pipe binary")?,
+            exe: std::env::current_exe().io_context(|| "finding the pipe binary".into())?,
             args,
             jobs: jobs.max(1),
             queue: VecDeque::new(),
@@ -32,33 +34,38 @@ impl Local {
         })
     }
 
-    fn start(&mut self, task: Task) -> Result<()> {
-        let log = File::create(&task.log)
-            .with_context(|| format!("creating log file {}", task.log.display()))?;
+    fn start(&mut self, task: Task) -> Result<(), ExecutorError> {
+        let what = || format!("creating log file {}", task.log.display());
+        let log = File::create(&task.log).io_context(what)?;
+        let out = log.try_clone().io_context(what)?;
         let child = Command::new(&self.exe)
             .args(&self.args)
             .arg(&task.scene)
             .stdin(Stdio::null())
-            .stdout(log.try_clone()?)
+            .stdout(out)
             .stderr(log)
             .spawn()
-            .with_context(|| format!("starting {}", self.exe.display()))?;
+            .io_context(|| format!("starting {}", self.exe.display()))?;
         self.running.push((task, child));
         Ok(())
     }
 }
 
 impl Backend for Local {
-    fn submit(&mut self, tasks: &[Task]) -> Result<()> {
+    fn submit(&mut self, tasks: &[Task]) -> Result<(), ExecutorError> {
         self.queue.extend(tasks.iter().cloned());
         Ok(())
     }
 
-    fn poll(&mut self) -> Result<Vec<(Task, String)>> {
+    fn poll(&mut self) -> Result<Vec<(Task, String)>, ExecutorError> {
         let mut ended = Vec::new();
         let mut k = 0;
         while k < self.running.len() {
-            match self.running[k].1.try_wait()? {
+            let (task, child) = &mut self.running[k];
+            let status = child
+                .try_wait()
+                .io_context(|| format!("waiting for the task of scene {}", task.scene))?;
+            match status {
                 Some(status) => {
                     let (task, _) = self.running.swap_remove(k);
                     let how = match status.code() {

@@ -9,6 +9,8 @@
 //! its log file is named. Ctrl-C cancels every task. Tasks share the cache safely: each entry
 //! is computed under its own lock file and published by an atomic rename (see `store`).
 
+mod backend;
+mod error;
 pub mod local;
 pub mod slurm;
 
@@ -22,13 +24,15 @@ use std::{
     time::{Duration, Instant},
 };
 
-use anyhow::{bail, Context, Result};
+pub use backend::{shell_quote, Backend, Task};
+pub use error::ExecutorError;
 
 use crate::{
-    config::Pipeline,
+    config::{shorten, Pipeline},
     dag::Dag,
+    error::IoContext,
     runner::{self, RunOptions, Scenes, State},
-    store::Store,
+    store::{unix_now, Store},
 };
 
 /// Where scene tasks run.
@@ -38,35 +42,6 @@ pub enum ExecutorKind {
     Local,
     /// A Slurm cluster: one job array (`sbatch --array`), resources from `executor.slurm`.
     Slurm,
-}
-
-/// One try of one scene.
-#[derive(Debug, Clone)]
-pub struct Task {
-    /// Position of the scene among the scenes this run hands out (the array index on Slurm).
-    pub index: usize,
-    pub scene: String,
-    /// 1 for the first try.
-    pub attempt: u32,
-    /// Where the task's output goes.
-    pub log: PathBuf,
-}
-
-/// A place that runs tasks.
-pub trait Backend {
-    /// Starts (or queues) these tasks.
-    fn submit(&mut self, tasks: &[Task]) -> Result<()>;
-    /// Tasks that ended since the last call, with how they ended (`exit code 0`,
-    /// `CANCELLED`, ...).
-    fn poll(&mut self) -> Result<Vec<(Task, String)>>;
-    /// (waiting, running) tasks.
-    fn counts(&self) -> (usize, usize);
-    /// Stops every task this backend started; says what it did.
-    fn cancel(&mut self) -> String;
-    /// Seconds between two polls.
-    fn poll_interval(&self) -> Duration;
-    /// A short name for progress lines (`local`, `slurm job 12`).
-    fn label(&self) -> String;
 }
 
 /// What the coordinator needs beyond the pipeline.
@@ -98,22 +73,10 @@ fn catch_interrupts() {
     }
 }
 
-/// Single-quotes `s` for a POSIX shell.
-pub fn shell_quote(s: &str) -> String {
-    if !s.is_empty()
-        && s.chars()
-            .all(|c| c.is_ascii_alphanumeric() || "-_./=@:,+%".contains(c))
-    {
-        s.to_string()
-    } else {
-        format!("'{}'", s.replace('\'', "'\\''"))
-    }
-}
-
 /// The arguments of `pipe` that run one scene (the scene name appended by the backend).
-pub fn task_args(p: &Pipeline, opts: &ExecOptions) -> Result<Vec<String>> {
-    let abs = |path: &Path| -> Result<PathBuf> {
-        std::path::absolute(path).with_context(|| format!("resolving {}", path.display()))
+pub fn task_args(p: &Pipeline, opts: &ExecOptions) -> Result<Vec<String>, ExecutorError> {
+    let abs = |path: &Path| -> Result<PathBuf, ExecutorError> {
+        Ok(std::path::absolute(path).io_context(|| format!("resolving {}", path.display()))?)
     };
     let mut args = vec![
         "run".to_string(),
@@ -160,12 +123,10 @@ struct SceneEnd {
 
 /// Runs the selected scenes through the executor, then the dataset stages; returns the exit
 /// code (0 all done, 1 a scene or a dataset stage failed, 130 interrupted).
-pub fn run_scenes(p: Arc<Pipeline>, opts: &ExecOptions) -> Result<i32> {
+pub fn run_scenes(p: Arc<Pipeline>, opts: &ExecOptions) -> Result<i32, ExecutorError> {
     let t0 = Instant::now();
     if opts.run.until.is_some() || opts.run.only.is_some() {
-        bail!(crate::cli::UsageError(
-            "--until and --only select stages inside a scene: use them with `--executor local` and --jobs 1 (or with --scene NAME)".into()
-        ));
+        return Err(ExecutorError::StageSelection);
     }
     let dag = Dag::build(&p)?;
     let store = Store::open(&p.cache_dir)?;
@@ -214,12 +175,14 @@ pub fn run_scenes(p: Arc<Pipeline>, opts: &ExecOptions) -> Result<i32> {
         if stale.is_empty() {
             " (nothing submitted)".to_string()
         } else {
-            format!(": {}", crate::config::shorten(&stale.join(", "), 200))
+            format!(": {}", shorten(&stale.join(", "), 200))
         }
     );
 
-    let run_id = format!("{}-{}", crate::store::unix_now() as u64, std::process::id());
-    let log_dir = std::path::absolute(p.cache_dir.join("logs").join(&run_id))?;
+    let run_id = format!("{}-{}", unix_now() as u64, std::process::id());
+    let logs = p.cache_dir.join("logs").join(&run_id);
+    let log_dir =
+        std::path::absolute(&logs).io_context(|| format!("resolving {}", logs.display()))?;
     let mut failed_scenes = 0;
     if !stale.is_empty() {
         let args = task_args(&p, opts)?;
@@ -239,7 +202,7 @@ pub fn run_scenes(p: Arc<Pipeline>, opts: &ExecOptions) -> Result<i32> {
             return Ok(0);
         }
         std::fs::create_dir_all(&log_dir)
-            .with_context(|| format!("creating log directory {}", log_dir.display()))?;
+            .io_context(|| format!("creating log directory {}", log_dir.display()))?;
         catch_interrupts();
         let code = follow(
             &p,
@@ -272,11 +235,7 @@ pub fn run_scenes(p: Arc<Pipeline>, opts: &ExecOptions) -> Result<i32> {
             jobs: 1,
             ..opts.run.clone()
         };
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(1)
-            .enable_all()
-            .build()?;
-        let rep = rt.block_on(runner::run(p.clone(), &run))?;
+        let rep = runner::run_blocking(p.clone(), &run)?;
         print!("{}", runner::summary(&rep));
         code = i32::from(rep.failed);
     }
@@ -315,7 +274,7 @@ fn follow(
     stale: &[String],
     log_dir: &Path,
     ends: &mut BTreeMap<String, SceneEnd>,
-) -> Result<i32> {
+) -> Result<i32, ExecutorError> {
     backend.submit(&first_tries(stale, log_dir))?;
     eprintln!(
         "{}: {} tasks submitted; logs in {}",

@@ -11,10 +11,15 @@ use std::{
     time::Duration,
 };
 
-use anyhow::{anyhow, bail, Context, Result};
-
-use super::{shell_quote, Backend, Task};
-use crate::config::SlurmConfig;
+use super::{
+    backend::{shell_quote, Backend, Task},
+    error::ExecutorError,
+};
+use crate::{
+    config::SlurmConfig,
+    error::{chain, IoContext},
+    store::write_atomic,
+};
 
 /// How a task ended when neither `scontrol` nor `sacct` knows it any more.
 pub const UNKNOWN_END: &str = "ended (state unknown to scontrol and sacct)";
@@ -33,18 +38,17 @@ pub struct Slurm {
 }
 
 /// Runs a Slurm command; its stdout, or an error with its stderr.
-fn slurm(cmd: &str, args: &[String]) -> Result<String> {
+fn slurm(cmd: &str, args: &[String]) -> Result<String, ExecutorError> {
     let out = Command::new(cmd)
         .args(args)
         .output()
-        .with_context(|| format!("running `{cmd}` (is Slurm installed and on PATH?)"))?;
+        .io_context(|| format!("running `{cmd}` (is Slurm installed and on PATH?)"))?;
     if !out.status.success() {
-        bail!(
-            "`{cmd} {}` failed ({}): {}",
-            args.join(" "),
-            out.status,
-            String::from_utf8_lossy(&out.stderr).trim()
-        );
+        return Err(ExecutorError::Slurm {
+            command: format!("{cmd} {}", args.join(" ")),
+            status: out.status.to_string(),
+            stderr: String::from_utf8_lossy(&out.stderr).trim().to_string(),
+        });
     }
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
@@ -79,11 +83,11 @@ impl Slurm {
         scenes: &[String],
         dir: &Path,
         dry_run: bool,
-    ) -> Result<Slurm> {
+    ) -> Result<Slurm, ExecutorError> {
         let pipe = match &cfg.pipe {
             Some(p) => p.clone(),
             None => std::env::current_exe()
-                .context("finding the pipe binary")?
+                .io_context(|| "finding the pipe binary".into())?
                 .to_string_lossy()
                 .into_owned(),
         };
@@ -223,7 +227,7 @@ impl Slurm {
 }
 
 impl Backend for Slurm {
-    fn submit(&mut self, tasks: &[Task]) -> Result<()> {
+    fn submit(&mut self, tasks: &[Task]) -> Result<(), ExecutorError> {
         if tasks.is_empty() {
             return Ok(());
         }
@@ -250,15 +254,15 @@ impl Backend for Slurm {
                 continue;
             }
             std::fs::create_dir_all(&self.dir)
-                .with_context(|| format!("creating {}", self.dir.display()))?;
-            crate::store::write_atomic(&self.script_path(), self.script().as_bytes())?;
+                .io_context(|| format!("creating {}", self.dir.display()))?;
+            write_atomic(&self.script_path(), self.script().as_bytes())?;
             let out = slurm("sbatch", &args)?;
             let job = out
                 .trim()
                 .split(';')
                 .next()
                 .filter(|j| !j.is_empty() && j.chars().all(|c| c.is_ascii_digit()))
-                .ok_or_else(|| anyhow!("sbatch printed no job id: {out:?}"))?
+                .ok_or_else(|| ExecutorError::NoJobId(out.clone()))?
                 .to_string();
             eprintln!(
                 "slurm: submitted job array {job} (tasks {}, try {attempt})",
@@ -276,7 +280,7 @@ impl Backend for Slurm {
         Ok(())
     }
 
-    fn poll(&mut self) -> Result<Vec<(Task, String)>> {
+    fn poll(&mut self) -> Result<Vec<(Task, String)>, ExecutorError> {
         if self.active.is_empty() {
             return Ok(Vec::new());
         }
@@ -291,11 +295,13 @@ impl Backend for Slurm {
                 out
             }
             // A job that left the controller entirely is no error: its tasks ended.
-            Err(e) if e.to_string().contains("Invalid job id") => String::new(),
+            Err(ExecutorError::Slurm { stderr, .. }) if stderr.contains("Invalid job id") => {
+                String::new()
+            }
             Err(e) => {
                 self.squeue_failures += 1;
                 if self.squeue_failures >= 30 {
-                    return Err(e.context("squeue keeps failing; the tasks may still run"));
+                    return Err(ExecutorError::SqueueFailing(Box::new(e)));
                 }
                 return Ok(Vec::new());
             }
@@ -339,7 +345,7 @@ impl Backend for Slurm {
         }
         let msg = match slurm("scancel", &ids) {
             Ok(_) => format!("cancelled slurm job(s) {}", ids.join(", ")),
-            Err(e) => format!("scancel {} failed: {e:#}", ids.join(" ")),
+            Err(e) => format!("scancel {} failed: {}", ids.join(" "), chain(&e)),
         };
         self.active.clear();
         msg

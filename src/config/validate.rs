@@ -1,0 +1,342 @@
+//! Stage declarations checked against the registry: the kind exists, the inputs are slots of
+//! the kind and name stages that write what the slot reads, and the params (with scene settings
+//! and `--set` overrides applied) fit the kind's defaults and pass its own validation.
+
+use std::collections::BTreeMap;
+
+use serde_json::Value;
+use serde_yaml::{Mapping, Value as Yaml};
+use stages::Stage;
+
+use super::{
+    error::{ConfigError, Loc},
+    overrides::{self, Setting},
+    pipeline::StageDecl,
+    yaml::{describe, json_type, yaml_type, Ctx},
+};
+
+const STAGE_KEYS: &[&str] = &["uses", "params", "inputs", "doc"];
+
+pub(super) fn valid_name(n: &str) -> bool {
+    !n.is_empty()
+        && n.chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// Whether a user value may replace a default of this JSON type (shallow check; the kind's own
+/// deserialisation checks the rest).
+fn type_fits(default: &Value, user: &Value) -> bool {
+    match (default, user) {
+        (Value::Null, _) => true,
+        (Value::Number(d), Value::Number(u)) => d.is_f64() || !u.is_f64(),
+        (Value::Bool(_), Value::Bool(_)) => true,
+        (Value::String(_), Value::String(_)) => true,
+        (Value::Array(_), Value::Array(_)) => true,
+        (Value::Object(_), Value::Object(_)) => true,
+        (Value::Object(_) | Value::Array(_) | Value::String(_), Value::Null) => false,
+        _ => false,
+    }
+}
+
+/// One stage being validated: its name, where it is written (`stages.train`) and its mapping.
+struct Decl<'a> {
+    cx: &'a Ctx<'a>,
+    name: &'a str,
+    base: &'a str,
+    m: &'a Mapping,
+}
+
+impl Decl<'_> {
+    fn err(&self, loc: Loc, key: Option<&str>, msg: impl Into<String>) -> ConfigError {
+        self.cx.err(loc, Some(self.name), key, msg)
+    }
+
+    fn key(&self, sub: &str) -> Loc {
+        self.cx.locs.key(&format!("{}.{sub}", self.base))
+    }
+
+    fn value(&self, sub: &str) -> Loc {
+        self.cx.locs.value(&format!("{}.{sub}", self.base))
+    }
+}
+
+/// Validates stage `name` written at key path `base` (`stages.train`), applying `settings`
+/// (a scene's, then the command line's) to its params.
+pub(super) fn stage_decl(
+    cx: &Ctx,
+    name: &str,
+    base: &str,
+    v: &Yaml,
+    settings: &[Setting],
+) -> Result<StageDecl, ConfigError> {
+    let loc = cx.locs.key(base);
+    let m = match v {
+        Yaml::Mapping(m) => m,
+        other => {
+            return Err(cx.err(
+                cx.locs.value(base),
+                Some(name),
+                None,
+                format!(
+                    "expected a mapping with `uses:`, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    };
+    let d = Decl { cx, name, base, m };
+    for k in m.keys() {
+        let key = k.as_str().unwrap_or("?");
+        if !STAGE_KEYS.contains(&key) {
+            return Err(d.err(
+                d.key(key),
+                Some(key),
+                format!("unknown key (expected one of: {})", STAGE_KEYS.join(", ")),
+            ));
+        }
+    }
+    let (kind_name, kind) = kind_of(&d, loc.clone())?;
+    let inputs = inputs_of(&d, &kind_name, kind.as_ref())?;
+    let params = params_of(&d, &kind_name, kind.as_ref(), settings)?;
+    Ok(StageDecl {
+        scene: None,
+        template: name.to_string(),
+        gather: BTreeMap::new(),
+        name: name.to_string(),
+        kind,
+        params,
+        inputs,
+        loc,
+    })
+}
+
+/// `uses:`: the kind, from the registry.
+fn kind_of(d: &Decl, loc: Loc) -> Result<(String, Box<dyn Stage>), ConfigError> {
+    let kind_name = match d.m.get("uses") {
+        Some(Yaml::String(s)) => s.clone(),
+        Some(other) => {
+            return Err(d.err(
+                d.value("uses"),
+                Some("uses"),
+                format!("expected a stage kind name, found {}", yaml_type(other)),
+            ))
+        }
+        None => {
+            return Err(d.err(
+                loc,
+                Some("uses"),
+                "missing: which stage kind does this stage use?",
+            ))
+        }
+    };
+    let kind = stages::find(&kind_name).ok_or_else(|| {
+        let known: Vec<_> = stages::registry()
+            .iter()
+            .map(|k| k.kind())
+            .filter(|k| !k.starts_with("test_"))
+            .collect();
+        d.err(
+            d.value("uses"),
+            Some("uses"),
+            format!(
+                "unknown stage kind `{kind_name}` (known: {})",
+                known.join(", ")
+            ),
+        )
+    })?;
+    Ok((kind_name, kind))
+}
+
+/// `inputs:`: slot -> upstream stage, every slot a slot of the kind, every required slot given.
+fn inputs_of(
+    d: &Decl,
+    kind_name: &str,
+    kind: &dyn Stage,
+) -> Result<BTreeMap<String, String>, ConfigError> {
+    let mut inputs = BTreeMap::new();
+    match d.m.get("inputs") {
+        None | Some(Yaml::Null) => {}
+        Some(Yaml::Mapping(im)) => {
+            for (k, v) in im {
+                let slot = k.as_str().unwrap_or("?").to_string();
+                let sub = format!("inputs.{slot}");
+                if !kind.inputs().iter().any(|s| s.name == slot) {
+                    let slots: Vec<_> = kind.inputs().iter().map(|s| s.name).collect();
+                    return Err(d.err(
+                        d.key(&sub),
+                        Some(&sub),
+                        format!(
+                            "kind `{kind_name}` has no input slot `{slot}` (slots: {})",
+                            if slots.is_empty() {
+                                "none".to_string()
+                            } else {
+                                slots.join(", ")
+                            }
+                        ),
+                    ));
+                }
+                let up = v.as_str().ok_or_else(|| {
+                    d.err(
+                        d.value(&sub),
+                        Some(&sub),
+                        format!("expected the name of a stage, found {}", yaml_type(v)),
+                    )
+                })?;
+                inputs.insert(slot, up.to_string());
+            }
+        }
+        Some(other) => {
+            return Err(d.err(
+                d.value("inputs"),
+                Some("inputs"),
+                format!(
+                    "expected a mapping of input slot -> stage name, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    }
+    for slot in kind.inputs() {
+        if !slot.optional && !inputs.contains_key(slot.name) {
+            return Err(d.err(
+                d.cx.locs.key(d.base),
+                Some(&format!("inputs.{}", slot.name)),
+                format!(
+                    "missing input: kind `{kind_name}` needs slot `{}` ({})",
+                    slot.name, slot.doc
+                ),
+            ));
+        }
+    }
+    Ok(inputs)
+}
+
+/// `params:` with `settings` applied: a shallow type check against the kind's defaults, then
+/// the kind's own validation, which gives the canonical params.
+fn params_of(
+    d: &Decl,
+    kind_name: &str,
+    kind: &dyn Stage,
+    settings: &[Setting],
+) -> Result<Value, ConfigError> {
+    let defaults = kind.default_params();
+    let Value::Object(mut merged) = defaults.clone() else {
+        unreachable!("stage params are a struct");
+    };
+    let mut given: Vec<(String, Yaml, Loc)> = Vec::new();
+    match d.m.get("params") {
+        None | Some(Yaml::Null) => {}
+        Some(Yaml::Mapping(pm)) => {
+            for (k, v) in pm {
+                let key = k.as_str().unwrap_or("?").to_string();
+                let l = d.key(&format!("params.{key}"));
+                given.push((key, v.clone(), l));
+            }
+        }
+        Some(other) => {
+            return Err(d.err(
+                d.value("params"),
+                Some("params"),
+                format!(
+                    "expected a mapping of param -> value, found {}",
+                    yaml_type(other)
+                ),
+            ))
+        }
+    }
+    overrides::apply(&mut given, settings);
+    for (key, v, l) in &given {
+        let pkey = format!("params.{key}");
+        let Some(default) = defaults.get(key) else {
+            let known: Vec<_> = defaults
+                .as_object()
+                .map(|o| o.keys().cloned().collect())
+                .unwrap_or_default();
+            return Err(d.err(
+                l.clone(),
+                Some(&pkey),
+                format!(
+                    "unknown param of kind `{kind_name}` (params: {})",
+                    if known.is_empty() {
+                        "none".to_string()
+                    } else {
+                        known.join(", ")
+                    }
+                ),
+            ));
+        };
+        let user: Value = serde_json::to_value(v)
+            .map_err(|e| d.err(l.clone(), Some(&pkey), format!("unsupported value: {e}")))?;
+        if !type_fits(default, &user) {
+            return Err(d.err(
+                l.clone(),
+                Some(&pkey),
+                format!(
+                    "expected {} (default {}), found {} {}",
+                    json_type(default),
+                    describe(default),
+                    yaml_type(v),
+                    describe(&user)
+                ),
+            ));
+        }
+        merged.insert(key.clone(), user);
+    }
+    kind.canonical_params(&Value::Object(merged)).map_err(|e| {
+        let msg = match e {
+            stages::StageError::Params(m) => m,
+            other => other.to_string(),
+        };
+        // Point at the param the message names (`name`), if the user gave it.
+        let named = msg.split('`').nth(1).map(str::to_string);
+        let (l, key) = match named.and_then(|n| given.iter().find(|(k, ..)| *k == n)) {
+            Some((k, _, l)) => (l.clone(), Some(format!("params.{k}"))),
+            None => (d.key("params"), None),
+        };
+        d.err(l, key.as_deref(), msg)
+    })
+}
+
+/// Inputs name existing stages (of `stages` itself or of `more`) whose kind writes the tables
+/// the slot reads; `section` is where `stages` are written (`stages`, `dataset`).
+pub(super) fn check_inputs(
+    cx: &Ctx,
+    stages: &[StageDecl],
+    more: &[StageDecl],
+    section: &str,
+) -> Result<(), ConfigError> {
+    for s in stages {
+        for (slot, up) in &s.inputs {
+            let kpath = format!("{section}.{}.inputs.{slot}", s.name);
+            let Some(u) = stages.iter().chain(more).find(|x| &x.name == up) else {
+                return Err(cx.err(
+                    cx.locs.value(&kpath),
+                    Some(&s.name),
+                    Some(&format!("inputs.{slot}")),
+                    format!("no stage named `{up}` in this pipeline"),
+                ));
+            };
+            let spec = s
+                .kind
+                .inputs()
+                .iter()
+                .find(|x| x.name == slot)
+                .expect("slot checked");
+            for t in spec.tables {
+                if !u.kind.outputs().contains(t) {
+                    return Err(cx.err(
+                        cx.locs.value(&kpath),
+                        Some(&s.name),
+                        Some(&format!("inputs.{slot}")),
+                        format!(
+                            "stage `{up}` (kind `{}`) does not write table `{t}` that slot `{slot}` reads (it writes: {})",
+                            u.kind.kind(),
+                            u.kind.outputs().join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}

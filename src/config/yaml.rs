@@ -1,0 +1,218 @@
+//! The raw YAML side of configuration files: where every key and value stands (line and
+//! column, from yaml-rust2's event stream, since serde_yaml keeps no positions), the errors
+//! that point there, and how values are named in messages.
+
+use std::{collections::HashMap, path::Path};
+
+use serde_json::Value;
+use serde_yaml::Value as Yaml;
+use yaml_rust2::{parser::MarkedEventReceiver, parser::Parser, scanner::Marker, Event};
+
+use super::error::{ConfigError, Loc};
+
+/// Key paths (`stages.train.params.lr`) -> where the key stands in the file.
+#[derive(Default)]
+pub(crate) struct Locations {
+    map: HashMap<String, Loc>,
+}
+
+struct Recv {
+    stack: Vec<Frame>,
+    out: HashMap<String, Loc>,
+}
+
+enum Frame {
+    Map { path: String, key: Option<String> },
+    Seq { path: String, index: usize },
+}
+
+fn join(a: &str, b: &str) -> String {
+    if a.is_empty() {
+        b.to_string()
+    } else {
+        format!("{a}.{b}")
+    }
+}
+
+impl Recv {
+    /// The path of the node that is starting now, and marks its key as consumed.
+    fn child_path(&mut self, scalar: Option<&str>, mark: Marker) -> Option<String> {
+        match self.stack.last_mut() {
+            None => Some(String::new()),
+            Some(Frame::Map { path, key }) => match key.take() {
+                Some(k) => Some(join(path, &k)),
+                None => {
+                    // This scalar is a key.
+                    let k = scalar.unwrap_or("?").to_string();
+                    let p = join(path, &k);
+                    self.out.insert(
+                        p,
+                        Loc::File {
+                            line: mark.line(),
+                            col: mark.col() + 1,
+                        },
+                    );
+                    *key = Some(k);
+                    None
+                }
+            },
+            Some(Frame::Seq { path, index }) => {
+                let p = join(path, &index.to_string());
+                *index += 1;
+                Some(p)
+            }
+        }
+    }
+}
+
+impl MarkedEventReceiver for Recv {
+    fn on_event(&mut self, ev: Event, mark: Marker) {
+        let loc = Loc::File {
+            line: mark.line(),
+            col: mark.col() + 1,
+        };
+        match ev {
+            Event::Scalar(s, ..) => {
+                if let Some(p) = self.child_path(Some(&s), mark) {
+                    self.out.entry(format!("{p}#value")).or_insert(loc);
+                }
+            }
+            Event::Alias(_) => {
+                self.child_path(None, mark);
+            }
+            Event::MappingStart(..) => {
+                let p = self.child_path(None, mark).unwrap_or_default();
+                self.out.entry(format!("{p}#value")).or_insert(loc);
+                self.stack.push(Frame::Map { path: p, key: None });
+            }
+            Event::SequenceStart(..) => {
+                let p = self.child_path(None, mark).unwrap_or_default();
+                self.out.entry(format!("{p}#value")).or_insert(loc);
+                self.stack.push(Frame::Seq { path: p, index: 0 });
+            }
+            Event::MappingEnd | Event::SequenceEnd => {
+                self.stack.pop();
+            }
+            _ => {}
+        }
+    }
+}
+
+impl Locations {
+    pub(crate) fn scan(text: &str) -> Locations {
+        let mut recv = Recv {
+            stack: Vec::new(),
+            out: HashMap::new(),
+        };
+        // Syntax errors are reported by serde_yaml; a failed scan only loses locations.
+        let _ = Parser::new_from_str(text).load(&mut recv, false);
+        Locations { map: recv.out }
+    }
+
+    /// Where key `path` stands (falling back to its parents).
+    pub(crate) fn key(&self, path: &str) -> Loc {
+        let mut p = path.to_string();
+        loop {
+            if let Some(l) = self.map.get(&p) {
+                return l.clone();
+            }
+            match p.rfind('.') {
+                Some(i) => p.truncate(i),
+                None => return Loc::Unknown,
+            }
+        }
+    }
+
+    /// Where the value of key `path` starts.
+    pub(crate) fn value(&self, path: &str) -> Loc {
+        self.map
+            .get(&format!("{path}#value"))
+            .cloned()
+            .unwrap_or_else(|| self.key(path))
+    }
+
+    /// Where a serde_yaml error stands, and its message without serde_yaml's own " at line X
+    /// column Y" (the location goes in front). A repeated key is pointed at itself rather than
+    /// at its mapping.
+    pub(crate) fn serde_error(&self, e: &serde_yaml::Error) -> (Loc, String) {
+        let loc = e.location().map_or(Loc::Unknown, |l| Loc::File {
+            line: l.line(),
+            col: l.column(),
+        });
+        let msg = e.to_string();
+        let msg = msg.split(" at line ").next().unwrap_or(&msg).to_string();
+        let loc = match msg.split_once(": duplicate entry with key \"") {
+            Some((path, rest)) => {
+                let key = rest.trim_end_matches('"');
+                match self.key(&format!("{path}.{key}")) {
+                    Loc::Unknown => loc,
+                    l => l,
+                }
+            }
+            None => loc,
+        };
+        (loc, msg)
+    }
+}
+
+/// A file being validated: its name for messages and where its keys stand.
+pub(crate) struct Ctx<'a> {
+    pub file: &'a Path,
+    pub locs: Locations,
+}
+
+impl Ctx<'_> {
+    pub fn err(
+        &self,
+        loc: Loc,
+        stage: Option<&str>,
+        key: Option<&str>,
+        msg: impl Into<String>,
+    ) -> ConfigError {
+        ConfigError {
+            file: self.file.to_path_buf(),
+            loc,
+            stage: stage.map(String::from),
+            key: key.map(String::from),
+            message: msg.into(),
+        }
+    }
+}
+
+pub(crate) fn yaml_type(v: &Yaml) -> &'static str {
+    match v {
+        Yaml::Null => "null",
+        Yaml::Bool(_) => "a boolean",
+        Yaml::Number(n) if n.is_f64() => "a float",
+        Yaml::Number(_) => "an integer",
+        Yaml::String(_) => "a string",
+        Yaml::Sequence(_) => "a list",
+        Yaml::Mapping(_) => "a mapping",
+        Yaml::Tagged(_) => "a tagged value",
+    }
+}
+
+pub(crate) fn json_type(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(n) if n.is_f64() => "a number",
+        Value::Number(_) => "an integer",
+        Value::String(_) => "a string",
+        Value::Array(_) => "a list",
+        Value::Object(_) => "a mapping",
+    }
+}
+
+pub(crate) fn describe(v: &Value) -> String {
+    shorten(&v.to_string(), 40)
+}
+
+/// `s` cut to at most `max` characters plus `...` (on a character boundary: values may hold
+/// any UTF-8).
+pub fn shorten(s: &str, max: usize) -> String {
+    match s.char_indices().nth(max) {
+        Some((end, _)) => format!("{}...", &s[..end]),
+        None => s.to_string(),
+    }
+}

@@ -1,0 +1,320 @@
+//! Executing one stage, on a blocking thread: take the entry's lock (one writer per entry
+//! across every run on the cache), look again whether another run published it meanwhile,
+//! load the inputs (gathering every scene's tables for a dataset stage), run the body, check
+//! its outputs against the kind's contract and schema files, publish them, and measure wall
+//! time, CPU time and peak RSS of the body.
+
+use std::{
+    collections::{BTreeMap, BTreeSet, HashMap},
+    sync::{Arc, Mutex},
+    time::Instant,
+};
+
+use indicatif::ProgressBar;
+use stages::{Inputs, Tables};
+
+use super::{
+    error::StageFailure,
+    progress::{Bars, ProgressAdapter},
+};
+use crate::{
+    config::Pipeline,
+    store::{unix_now, Entry, Manifest, Store},
+};
+
+/// The manifests of a gathered slot's stage in every scene: (scene, manifest).
+pub(super) type SceneManifests = Vec<(String, Box<Manifest>)>;
+
+/// Tables already read from the cache during this run, by key.
+pub(super) type Loaded = Arc<Mutex<HashMap<String, Arc<Tables>>>>;
+
+/// Everything the thread that computes stage `i` needs.
+pub(super) struct Job {
+    pub p: Arc<Pipeline>,
+    pub i: usize,
+    pub store: Arc<Store>,
+    pub loaded: Loaded,
+    pub key: String,
+    pub no_wait: bool,
+    /// Run even if the entry appears meanwhile.
+    pub forced: bool,
+    /// (slot, manifest of the upstream entry).
+    pub upstream: Vec<(String, Box<Manifest>)>,
+    /// (slot, the gathered stage's manifest in every scene).
+    pub gathered: Vec<(String, SceneManifests)>,
+    /// The runner's time on this stage before the job started, seconds.
+    pub pre_overhead: f64,
+    /// Printed once the lock is held and the body starts.
+    pub running_line: String,
+    pub bar: ProgressBar,
+    pub bars: Bars,
+}
+
+/// A stage body that ended on its blocking thread: its published manifest and the runner's
+/// overhead, or the error; wall/CPU seconds and peak RSS of the body.
+pub(super) struct Finished {
+    pub i: usize,
+    pub result: Result<(Manifest, f64), StageFailure>,
+    /// Another run published the entry while this one waited for its lock.
+    pub reused: bool,
+    pub wall: f64,
+    pub cpu: f64,
+    pub rss: u64,
+}
+
+/// What the body cost.
+struct Measured {
+    started: f64,
+    wall: f64,
+    cpu: f64,
+    rss: u64,
+}
+
+impl Job {
+    /// Computes the stage (or finds it computed meanwhile).
+    pub fn run(self) -> Finished {
+        let f = self.work();
+        self.bar.finish_and_clear();
+        f
+    }
+
+    fn failed(&self, e: StageFailure) -> Finished {
+        Finished {
+            i: self.i,
+            result: Err(e),
+            reused: false,
+            wall: 0.0,
+            cpu: 0.0,
+            rss: 0,
+        }
+    }
+
+    fn work(&self) -> Finished {
+        let name = &self.p.stages[self.i].name;
+        // The entry's lock: one writer per entry across every run on this cache.
+        let waiting = |holder: &str| {
+            self.bars.log(&format!(
+                "stage `{name}`: waiting for {holder}, which computes the same entry"
+            ))
+        };
+        let _lock = match self.store.lock_key(&self.key, self.no_wait, waiting) {
+            Ok(l) => l,
+            Err(source) => {
+                return self.failed(StageFailure::Lock {
+                    stage: name.clone(),
+                    source,
+                })
+            }
+        };
+        if !self.forced {
+            if let Entry::Valid(m) = self.store.check(&self.key, false) {
+                return Finished {
+                    i: self.i,
+                    result: Ok((*m, self.pre_overhead)),
+                    reused: true,
+                    wall: 0.0,
+                    cpu: 0.0,
+                    rss: 0,
+                };
+            }
+        }
+        self.bars.log(&self.running_line);
+        let ov1 = Instant::now();
+        let ins = match self.load_inputs() {
+            Ok(ins) => ins,
+            Err(e) => return self.failed(e),
+        };
+        let load_s = ov1.elapsed().as_secs_f64();
+        reset_peak_rss();
+        let started = unix_now();
+        let (w0, c0) = (Instant::now(), cpu_seconds());
+        let result = execute(&self.p, self.i, &ins, &self.bar);
+        let body = Measured {
+            started,
+            wall: w0.elapsed().as_secs_f64(),
+            cpu: cpu_seconds() - c0,
+            rss: peak_rss_bytes(),
+        };
+        self.bar.finish_and_clear();
+        drop(ins);
+        let ov2 = Instant::now();
+        let published = result.and_then(|tables| self.publish(tables, &body));
+        let overhead = load_s + ov2.elapsed().as_secs_f64() + self.pre_overhead;
+        Finished {
+            i: self.i,
+            result: published.map(|m| (m, overhead)),
+            reused: false,
+            wall: body.wall,
+            cpu: body.cpu,
+            rss: body.rss,
+        }
+    }
+
+    /// The input tables by slot: gathered slots first, then the plain ones.
+    fn load_inputs(&self) -> Result<BTreeMap<String, Arc<Tables>>, StageFailure> {
+        let mut ins = BTreeMap::new();
+        for (slot, parts) in &self.gathered {
+            let spec = self.p.stages[self.i]
+                .kind
+                .inputs()
+                .iter()
+                .find(|x| x.name == slot);
+            let tables = spec.map_or(&[][..], |x| x.tables);
+            let parts = parts
+                .iter()
+                .map(|(scene, m)| Ok((scene.clone(), load_cached(&self.store, &self.loaded, m)?)))
+                .collect::<Result<Vec<_>, StageFailure>>()?;
+            ins.insert(slot.clone(), Arc::new(gather_tables(tables, &parts)?));
+        }
+        for (slot, m) in &self.upstream {
+            ins.insert(slot.clone(), load_cached(&self.store, &self.loaded, m)?);
+        }
+        Ok(ins)
+    }
+
+    /// Publishes the body's tables as the entry of this job's key, and keeps them for the
+    /// stages downstream.
+    fn publish(&self, tables: Tables, body: &Measured) -> Result<Manifest, StageFailure> {
+        let s = &self.p.stages[self.i];
+        let m = Manifest {
+            key: self.key.clone(),
+            kind: s.kind.kind().into(),
+            version: s.kind.version(),
+            stage: s.name.clone(),
+            params: s.params.clone(),
+            inputs: BTreeMap::new(),
+            files: BTreeMap::new(),
+            schemas: BTreeMap::new(),
+            output_digest: String::new(),
+            wall_s: body.wall,
+            cpu_s: body.cpu,
+            peak_rss_bytes: body.rss,
+            started: body.started,
+            finished: unix_now(),
+            tool_version: env!("CARGO_PKG_VERSION").into(),
+        };
+        let m = self.store.publish(m, &tables)?;
+        self.loaded
+            .lock()
+            .unwrap()
+            .insert(m.key.clone(), Arc::new(tables));
+        Ok(m)
+    }
+}
+
+fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<Arc<Tables>, StageFailure> {
+    if let Some(t) = loaded.lock().unwrap().get(&m.key) {
+        return Ok(t.clone());
+    }
+    let t = Arc::new(store.load(m)?);
+    loaded.lock().unwrap().insert(m.key.clone(), t.clone());
+    Ok(t)
+}
+
+/// The tables a gathered input slot hands to a dataset stage: for each table the slot reads,
+/// every scene's rows with a leading `scene` column, in scene order.
+pub fn gather_tables(
+    tables: &[&str],
+    parts: &[(String, Arc<Tables>)],
+) -> Result<Tables, StageFailure> {
+    use arrow::{
+        array::{ArrayRef, StringArray},
+        datatypes::{DataType, Field, Schema},
+        record_batch::RecordBatch,
+    };
+    let mut out = Tables::new();
+    for &t in tables {
+        let mut batches = Vec::new();
+        let mut schema = None;
+        for (scene, part) in parts {
+            let b = part.get(t).ok_or_else(|| StageFailure::GatherMissing {
+                scene: scene.clone(),
+                table: t.to_string(),
+            })?;
+            let mut fields = vec![Arc::new(Field::new("scene", DataType::Utf8, false))];
+            fields.extend(b.schema().fields().iter().cloned());
+            let sch = Arc::new(Schema::new(fields));
+            let mut cols: Vec<ArrayRef> = vec![Arc::new(StringArray::from(vec![
+                scene.as_str();
+                b.num_rows()
+            ]))];
+            cols.extend(b.columns().iter().cloned());
+            batches.push(RecordBatch::try_new(sch.clone(), cols)?);
+            schema = Some(sch);
+        }
+        let schema = schema.ok_or_else(|| StageFailure::GatherEmpty(t.to_string()))?;
+        out.insert(
+            t.to_string(),
+            arrow::compute::concat_batches(&schema, &batches)?,
+        );
+    }
+    Ok(out)
+}
+
+/// Runs a stage body and checks its outputs against the kind's contract and schema files.
+fn execute(
+    p: &Pipeline,
+    i: usize,
+    inputs: &BTreeMap<String, Arc<Tables>>,
+    bar: &ProgressBar,
+) -> Result<Tables, StageFailure> {
+    let s = &p.stages[i];
+    let (stage, kind) = (s.name.clone(), s.kind.kind().to_string());
+    let slots = inputs
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_ref()))
+        .collect();
+    let adapter = ProgressAdapter(bar.clone());
+    let tables = s
+        .kind
+        .run(&s.params, &Inputs::new(slots), &adapter)
+        .map_err(|source| StageFailure::Body {
+            stage: stage.clone(),
+            kind: kind.clone(),
+            source,
+        })?;
+    let written: BTreeSet<String> = tables.keys().cloned().collect();
+    let declared: BTreeSet<String> = s.kind.outputs().iter().map(|t| t.to_string()).collect();
+    if written != declared {
+        return Err(StageFailure::Outputs {
+            stage,
+            kind,
+            written,
+            declared,
+        });
+    }
+    for (name, batch) in &tables {
+        stages::schema::check(name, &batch.schema()).map_err(|message| StageFailure::Schema {
+            stage: stage.clone(),
+            kind: kind.clone(),
+            message,
+        })?;
+    }
+    Ok(tables)
+}
+
+fn cpu_seconds() -> f64 {
+    // SAFETY: getrusage writes into the struct we pass.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// Resets the kernel's peak-RSS mark so the next reading covers only what follows.
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|kb| kb.parse::<u64>().ok())
+            })
+        })
+        .map_or(0, |kb| kb * 1024)
+}

@@ -1,0 +1,389 @@
+//! The schedule of a run: which stage comes next. A stage is decided once its inputs are done:
+//! skipped (an input failed), cached (a verified entry exists), would run (`--dry-run`), or
+//! started on a blocking thread as a [`Job`] when fewer than `--jobs` run. A finished job's
+//! outputs feed the keys of the stages below it.
+
+use std::{
+    collections::{BTreeMap, BTreeSet, HashMap},
+    sync::Arc,
+    time::Instant,
+};
+
+use tokio::task::JoinSet;
+
+use super::{
+    error::RunError,
+    execute::{Finished, Job, Loaded, SceneManifests},
+    options::RunOptions,
+    plan::{explain, key_of},
+    progress::Bars,
+    report::{Outcome, RunReport, StageReport},
+};
+use crate::{
+    config::Pipeline,
+    dag::Dag,
+    error::chain,
+    store::{Entry, InputInfo, Manifest, RunRecord, Store},
+};
+
+/// A fresh row of the run report for stage `i`.
+fn report(
+    p: &Pipeline,
+    i: usize,
+    outcome: Outcome,
+    reason: String,
+    key: Option<String>,
+) -> StageReport {
+    StageReport {
+        stage: p.stages[i].name.clone(),
+        kind: p.stages[i].kind.kind().to_string(),
+        outcome,
+        reason,
+        key,
+        wall_s: 0.0,
+        cpu_s: 0.0,
+        peak_rss_bytes: 0,
+        overhead_s: 0.0,
+    }
+}
+
+/// The record of a stage's run with this key and these inputs.
+fn run_record(
+    p: &Pipeline,
+    i: usize,
+    key: String,
+    inputs: BTreeMap<String, InputInfo>,
+) -> RunRecord {
+    let s = &p.stages[i];
+    RunRecord {
+        key,
+        kind: s.kind.kind().into(),
+        version: s.kind.version(),
+        params: s.params.clone(),
+        inputs,
+        history: vec![],
+    }
+}
+
+/// The state of a run between the starts and ends of its stages.
+pub(super) struct Scheduler<'a> {
+    p: &'a Arc<Pipeline>,
+    dag: &'a Dag,
+    store: &'a Arc<Store>,
+    opts: &'a RunOptions,
+    /// Digests of the files outside the cache, by stage.
+    external: HashMap<usize, String>,
+    /// The stages the run brings up to date.
+    selected: BTreeSet<usize>,
+    /// The selected stages and what they read (which must be fresh).
+    needed: BTreeSet<usize>,
+    force: BTreeSet<usize>,
+    bars: Bars,
+    loaded: Loaded,
+    /// Output digests and manifests of the stages done so far.
+    digests: HashMap<usize, String>,
+    manifests: HashMap<usize, Box<Manifest>>,
+    reports: HashMap<usize, StageReport>,
+    failed: BTreeSet<usize>,
+    done: BTreeSet<usize>,
+    in_flight: BTreeSet<usize>,
+    /// No stage starts any more (after a failure without `--keep-going`).
+    stop: bool,
+    /// Stages started so far, for `[n/total]`.
+    started: usize,
+}
+
+impl<'a> Scheduler<'a> {
+    pub fn new(
+        p: &'a Arc<Pipeline>,
+        dag: &'a Dag,
+        store: &'a Arc<Store>,
+        opts: &'a RunOptions,
+        selected: BTreeSet<usize>,
+        external: HashMap<usize, String>,
+    ) -> Scheduler<'a> {
+        let force: BTreeSet<usize> = if opts.force_all {
+            selected.clone()
+        } else {
+            opts.force.iter().filter_map(|f| p.index_of(f)).collect()
+        };
+        // Stages outside the selection that selected ones read (for --only) must be fresh.
+        let needed: BTreeSet<usize> = selected
+            .iter()
+            .flat_map(|&i| dag.ancestors_and_self(i))
+            .collect();
+        Scheduler {
+            p,
+            dag,
+            store,
+            opts,
+            external,
+            selected,
+            needed,
+            force,
+            bars: Bars::new(),
+            loaded: Arc::default(),
+            digests: HashMap::new(),
+            manifests: HashMap::new(),
+            reports: HashMap::new(),
+            failed: BTreeSet::new(),
+            done: BTreeSet::new(),
+            in_flight: BTreeSet::new(),
+            stop: false,
+            started: 0,
+        }
+    }
+
+    /// Decides every stage whose inputs are done, starting jobs on `running`, until nothing
+    /// more can be decided before a job ends.
+    pub fn start_ready(&mut self, running: &mut JoinSet<Finished>) -> Result<(), RunError> {
+        let dag = self.dag;
+        let mut progressed = true;
+        while progressed && !self.stop {
+            progressed = false;
+            for &i in &dag.order {
+                progressed |= self.visit(i, running)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Decides stage `i` if it is due: whether it did.
+    fn visit(&mut self, i: usize, running: &mut JoinSet<Finished>) -> Result<bool, RunError> {
+        if self.done.contains(&i) || self.in_flight.contains(&i) || !self.needed.contains(&i) {
+            return Ok(false);
+        }
+        let ups = self.dag.upstream(i);
+        if !ups.iter().all(|u| self.done.contains(u)) {
+            return Ok(false);
+        }
+        let p = self.p;
+        if let Some(&bad) = ups
+            .iter()
+            .find(|u| self.failed.contains(u) || !self.digests.contains_key(u))
+        {
+            let why = if self.failed.contains(&bad) {
+                format!("upstream `{}` failed", p.stages[bad].name)
+            } else {
+                format!("upstream `{}` did not run", p.stages[bad].name)
+            };
+            self.failed.insert(i);
+            self.reports
+                .insert(i, report(p, i, Outcome::Skipped, why, None));
+            self.done.insert(i);
+            return Ok(true);
+        }
+        let ov0 = Instant::now();
+        let (key, inputs) = key_of(p, i, &self.digests, &self.external).expect("inputs done");
+        let Some(reason) = self.why_run(i, &key, &inputs, ov0)? else {
+            return Ok(true);
+        };
+        if !self.selected.contains(&i) {
+            return Err(RunError::NotUpToDate {
+                only: self.opts.only.clone(),
+                stage: p.stages[i].name.clone(),
+                reason,
+            });
+        }
+        if self.opts.dry_run {
+            self.reports
+                .insert(i, report(p, i, Outcome::WouldRun, reason, Some(key)));
+            self.done.insert(i);
+            return Ok(true);
+        }
+        if self.in_flight.len() >= self.opts.jobs.max(1) {
+            return Ok(false);
+        }
+        self.start(i, key, reason, ov0, running);
+        Ok(true)
+    }
+
+    /// Why stage `i` must run, or `None` when its entry is valid (then it is done: cached).
+    /// A corrupt entry is moved aside (not in a dry run).
+    fn why_run(
+        &mut self,
+        i: usize,
+        key: &str,
+        inputs: &BTreeMap<String, InputInfo>,
+        ov0: Instant,
+    ) -> Result<Option<String>, RunError> {
+        let p = self.p;
+        Ok(Some(match self.store.check(key, self.opts.verify) {
+            Entry::Valid(m) if !self.force.contains(&i) => {
+                self.cached(i, key, inputs, m, ov0)?;
+                return Ok(None);
+            }
+            Entry::Valid(_) => "forced".to_string(),
+            Entry::Corrupt(why) if self.opts.dry_run => format!("cache entry corrupt: {why}"),
+            Entry::Corrupt(why) => {
+                let dest = self.store.quarantine(key)?;
+                let msg = format!("cache entry corrupt: {why} (moved to {})", dest.display());
+                let name = &p.stages[i].name;
+                self.bars.log(&format!("warning: stage `{name}`: {msg}"));
+                msg
+            }
+            Entry::Missing => explain(p, i, self.store, key, inputs),
+        }))
+    }
+
+    /// Stage `i` is up to date: its entry `m` feeds the stages below it.
+    fn cached(
+        &mut self,
+        i: usize,
+        key: &str,
+        inputs: &BTreeMap<String, InputInfo>,
+        m: Box<Manifest>,
+        ov0: Instant,
+    ) -> Result<(), RunError> {
+        let p = self.p;
+        self.digests.insert(i, m.output_digest.clone());
+        if self.selected.contains(&i) {
+            let mut r = report(p, i, Outcome::Cached, "up to date".into(), Some(key.into()));
+            r.overhead_s = ov0.elapsed().as_secs_f64();
+            self.reports.insert(i, r);
+            // Keep status explanations current even when the entry came from elsewhere.
+            let name = &p.stages[i].name;
+            if !self.opts.dry_run
+                && self.store.run_record(name).map(|r| r.key).as_deref() != Some(key)
+            {
+                let rec = run_record(p, i, key.into(), inputs.clone());
+                self.store.save_run_record(name, rec)?;
+            }
+        }
+        self.manifests.insert(i, m);
+        self.done.insert(i);
+        Ok(())
+    }
+
+    /// Starts computing stage `i` on a blocking thread.
+    fn start(
+        &mut self,
+        i: usize,
+        key: String,
+        reason: String,
+        ov0: Instant,
+        running: &mut JoinSet<Finished>,
+    ) {
+        let p = self.p;
+        let s = &p.stages[i];
+        self.started += 1;
+        let reason = reason.replace('\n', " ");
+        let running_line = format!(
+            "[{}/{}] running `{}` ({}): {reason}",
+            self.started,
+            self.selected.len(),
+            s.name,
+            s.kind.kind()
+        );
+        let bar = self.bars.bar(&s.name);
+        let manifest_of = |up: &String| self.manifests[&p.index_of(up).unwrap()].clone();
+        let upstream: Vec<(String, Box<Manifest>)> = s
+            .inputs
+            .iter()
+            .map(|(slot, up)| (slot.clone(), manifest_of(up)))
+            .collect();
+        let gathered: Vec<(String, SceneManifests)> = s
+            .gather
+            .iter()
+            .map(|(slot, ups)| {
+                let ms = ups
+                    .iter()
+                    .map(|(scene, up)| (scene.clone(), manifest_of(up)))
+                    .collect();
+                (slot.clone(), ms)
+            })
+            .collect();
+        let job = Job {
+            p: p.clone(),
+            i,
+            store: self.store.clone(),
+            loaded: self.loaded.clone(),
+            key: key.clone(),
+            no_wait: self.opts.no_wait,
+            forced: self.force.contains(&i),
+            upstream,
+            gathered,
+            pre_overhead: ov0.elapsed().as_secs_f64(),
+            running_line,
+            bar,
+            bars: self.bars.clone(),
+        };
+        self.reports
+            .insert(i, report(p, i, Outcome::Ran, reason, Some(key)));
+        self.in_flight.insert(i);
+        running.spawn_blocking(move || job.run());
+    }
+
+    /// Takes in a job that ended: its entry feeds the stages below it, or its failure stops
+    /// the run (unless `--keep-going`).
+    pub fn finish(&mut self, f: Finished) -> Result<(), RunError> {
+        let Finished {
+            i,
+            result,
+            reused,
+            wall,
+            cpu,
+            rss,
+        } = f;
+        self.in_flight.remove(&i);
+        self.done.insert(i);
+        let r = self.reports.get_mut(&i).expect("report created at start");
+        r.wall_s = wall;
+        r.cpu_s = cpu;
+        r.peak_rss_bytes = rss;
+        match result {
+            Ok((mut m, overhead)) => {
+                r.overhead_s += overhead;
+                if reused {
+                    r.outcome = Outcome::Cached;
+                    r.reason = "computed meanwhile by another run".into();
+                }
+                let key = r.key.clone().unwrap_or_default();
+                let (_, inputs) =
+                    key_of(self.p, i, &self.digests, &self.external).expect("inputs done");
+                m.inputs = inputs.clone();
+                let rec = run_record(self.p, i, key, inputs);
+                self.store.save_run_record(&self.p.stages[i].name, rec)?;
+                self.digests.insert(i, m.output_digest.clone());
+                self.manifests.insert(i, Box::new(m));
+            }
+            Err(e) => {
+                r.outcome = Outcome::Failed;
+                r.reason = chain(&e);
+                self.bars.log(&format!("error: {}", r.reason));
+                self.failed.insert(i);
+                if !self.opts.keep_going {
+                    self.stop = true;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The report of the run, in topological order; selected stages that never started (after
+    /// a failure without `--keep-going`) count as skipped.
+    pub fn into_report(mut self, wall_s: f64) -> RunReport {
+        for &i in &self.dag.order {
+            if self.selected.contains(&i) && !self.reports.contains_key(&i) {
+                let why = "not started after an earlier failure".into();
+                self.reports
+                    .insert(i, report(self.p, i, Outcome::Skipped, why, None));
+            }
+        }
+        let stages: Vec<StageReport> = self
+            .dag
+            .order
+            .iter()
+            .filter(|i| self.selected.contains(i))
+            .filter_map(|i| self.reports.remove(i))
+            .collect();
+        let failed = stages
+            .iter()
+            .any(|r| matches!(r.outcome, Outcome::Failed | Outcome::Skipped));
+        RunReport {
+            stages,
+            wall_s,
+            failed,
+        }
+    }
+}

@@ -1,0 +1,418 @@
+//! Cache entries: `objects/<key>/` with one Parquet file per table and `manifest.json`.
+//! Published atomically (written under `tmp/`, fsynced, renamed into `objects/`), verified on
+//! every look-up (sizes always, hashes unless the file is unchanged since it last verified) and
+//! on every read, moved to `trash/` when corrupt, removed by `gc`.
+
+use std::{
+    collections::{BTreeMap, BTreeSet},
+    fs::{self, File},
+    io::{Read, Write},
+    path::{Path, PathBuf},
+};
+
+use serde::{Deserialize, Serialize};
+use stages::Tables;
+
+use super::{
+    codec::{read_parquet, write_parquet},
+    error::StoreError,
+    files::{dir_size, fsync_dir, hash_bytes, owned_name, unix_now},
+    layout::Store,
+    memo::{stamp, Verified},
+};
+use crate::{error::IoContext, fingerprint};
+
+/// Size and hash of one file of an entry.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct FileInfo {
+    pub size: u64,
+    pub blake3: String,
+}
+
+/// An input of a run: which stage fed the slot, and the digest of what it wrote.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct InputInfo {
+    pub stage: String,
+    pub digest: String,
+}
+
+/// `manifest.json` of a cache entry.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub key: String,
+    pub kind: String,
+    pub version: u32,
+    /// The stage instance that first produced this entry (entries are shared by content).
+    pub stage: String,
+    pub params: serde_json::Value,
+    pub inputs: BTreeMap<String, InputInfo>,
+    /// File name -> size and blake3.
+    pub files: BTreeMap<String, FileInfo>,
+    /// Table name -> schema file name in data_schema/.
+    pub schemas: BTreeMap<String, String>,
+    /// blake3 over the files' digests: what downstream keys are computed from.
+    pub output_digest: String,
+    pub wall_s: f64,
+    pub cpu_s: f64,
+    pub peak_rss_bytes: u64,
+    /// Unix seconds.
+    pub started: f64,
+    pub finished: f64,
+    pub tool_version: String,
+}
+
+/// What a look-up of a key found.
+pub enum Entry {
+    Missing,
+    Valid(Box<Manifest>),
+    Corrupt(String),
+}
+
+fn files_digest(m: &Manifest) -> String {
+    let digests = m
+        .files
+        .iter()
+        .map(|(n, f)| (n.clone(), f.blake3.clone()))
+        .collect();
+    fingerprint::output_digest(&digests)
+}
+
+impl Store {
+    fn read_manifest(&self, key: &str) -> Result<Manifest, String> {
+        let path = self.entry_dir(key).join("manifest.json");
+        let bytes = fs::read(&path).map_err(|e| format!("cannot read manifest.json: {e}"))?;
+        let m: Manifest = serde_json::from_slice(&bytes)
+            .map_err(|e| format!("manifest.json is malformed: {e}"))?;
+        if m.key != key {
+            return Err(format!(
+                "manifest.json names key {} instead of {key}",
+                m.key
+            ));
+        }
+        if files_digest(&m) != m.output_digest {
+            return Err("manifest.json output digest does not match its file list".into());
+        }
+        Ok(m)
+    }
+
+    /// Looks up `key`, verifying sizes always and hashes unless the file is unchanged since it
+    /// was last hashed (`full` forces hashing).
+    pub fn check(&self, key: &str, full: bool) -> Entry {
+        let dir = self.entry_dir(key);
+        if !dir.exists() {
+            return Entry::Missing;
+        }
+        let m = match self.read_manifest(key) {
+            Ok(m) => m,
+            Err(e) => return Entry::Corrupt(e),
+        };
+        let mut memo = Verified::load(self);
+        let mut extra: BTreeSet<String> = match fs::read_dir(&dir) {
+            Ok(rd) => rd
+                .filter_map(|e| e.ok())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect(),
+            Err(e) => return Entry::Corrupt(format!("cannot list entry: {e}")),
+        };
+        extra.remove("manifest.json");
+        for (name, info) in &m.files {
+            extra.remove(name);
+            let path = dir.join(name);
+            let meta = match fs::metadata(&path) {
+                Ok(meta) => meta,
+                Err(_) => return Entry::Corrupt(format!("file {name} is missing")),
+            };
+            if meta.len() != info.size {
+                return Entry::Corrupt(format!(
+                    "file {name} has {} bytes, the manifest says {}",
+                    meta.len(),
+                    info.size
+                ));
+            }
+            let stamp = stamp(&meta);
+            if !full && memo.holds(key, name, &stamp) {
+                continue;
+            }
+            let digest = match fs::read(&path) {
+                Ok(bytes) => hash_bytes(&bytes),
+                Err(e) => return Entry::Corrupt(format!("cannot read {name}: {e}")),
+            };
+            if digest != info.blake3 {
+                memo.forget_file(key, name);
+                return Entry::Corrupt(format!(
+                    "file {name} does not match its blake3 in the manifest"
+                ));
+            }
+            memo.record(key, name, stamp);
+        }
+        if let Some(x) = extra.into_iter().next() {
+            return Entry::Corrupt(format!("unexpected file {x} in the entry"));
+        }
+        memo.save_if_changed();
+        Entry::Valid(Box::new(m))
+    }
+
+    /// Moves a corrupt entry to `trash/` so it is kept for inspection but never used.
+    pub fn quarantine(&self, key: &str) -> Result<PathBuf, StoreError> {
+        let dest = self.dir("trash").join(format!(
+            "{key}.{}.{}",
+            std::process::id(),
+            unix_now() as u64
+        ));
+        fs::rename(self.entry_dir(key), &dest)
+            .io_context(|| format!("moving corrupt entry {key} to {}", dest.display()))?;
+        Verified::load(self).forget_entry(key);
+        Ok(dest)
+    }
+
+    /// Reads an entry's tables, verifying every byte read against the manifest.
+    pub fn load(&self, m: &Manifest) -> Result<Tables, StoreError> {
+        let dir = self.entry_dir(&m.key);
+        let mut tables = Tables::new();
+        for (name, info) in &m.files {
+            let path = dir.join(name);
+            let mut bytes = Vec::with_capacity(info.size as usize);
+            File::open(&path)
+                .and_then(|mut f| f.read_to_end(&mut bytes))
+                .io_context(|| format!("reading {}", path.display()))?;
+            if bytes.len() as u64 != info.size || hash_bytes(&bytes) != info.blake3 {
+                return Err(StoreError::Corrupt(format!(
+                    "{} changed since it was verified (size or blake3 mismatch)",
+                    path.display()
+                )));
+            }
+            let table = name.strip_suffix(".parquet").unwrap_or(name).to_string();
+            let batch = read_parquet(bytes).map_err(|source| StoreError::Codec {
+                what: format!("decoding {}", path.display()),
+                source,
+            })?;
+            tables.insert(table, batch);
+        }
+        Ok(tables)
+    }
+
+    /// Writes `tables` as a new entry and publishes it atomically. If another process
+    /// published the same key meanwhile, its (verified) entry wins and ours is discarded.
+    pub fn publish(&self, mut manifest: Manifest, tables: &Tables) -> Result<Manifest, StoreError> {
+        let key = manifest.key.clone();
+        let tmp = self.dir("tmp").join(owned_name(&key));
+        let result = self
+            .write_entry(&tmp, &mut manifest, tables)
+            .and_then(|()| self.rename_into_objects(&tmp, &key, &manifest));
+        if result.is_err() {
+            let _ = fs::remove_dir_all(&tmp);
+        }
+        result
+    }
+
+    /// Writes the tables and the manifest (completed with the files' sizes, hashes and output
+    /// digest) into directory `tmp`, fsynced.
+    fn write_entry(
+        &self,
+        tmp: &Path,
+        manifest: &mut Manifest,
+        tables: &Tables,
+    ) -> Result<(), StoreError> {
+        fs::create_dir_all(tmp).io_context(|| format!("creating {}", tmp.display()))?;
+        manifest.files.clear();
+        manifest.schemas.clear();
+        for (name, batch) in tables {
+            let file = format!("{name}.parquet");
+            let bytes = write_parquet(batch).map_err(|source| StoreError::Codec {
+                what: format!("encoding table {name}"),
+                source,
+            })?;
+            write_synced(&tmp.join(&file), &bytes)?;
+            manifest.files.insert(
+                file,
+                FileInfo {
+                    size: bytes.len() as u64,
+                    blake3: hash_bytes(&bytes),
+                },
+            );
+            manifest
+                .schemas
+                .insert(name.clone(), format!("data_schema/{name}.json"));
+        }
+        manifest.output_digest = files_digest(manifest);
+        let json = serde_json::to_vec_pretty(&*manifest).map_err(|source| StoreError::Json {
+            what: "manifest.json".into(),
+            source,
+        })?;
+        write_synced(&tmp.join("manifest.json"), &json)?;
+        Ok(fsync_dir(tmp)?)
+    }
+
+    /// Publishes the complete entry in `tmp` as `objects/<key>`; the first writer wins.
+    fn rename_into_objects(
+        &self,
+        tmp: &Path,
+        key: &str,
+        manifest: &Manifest,
+    ) -> Result<Manifest, StoreError> {
+        let dest = self.entry_dir(key);
+        match fs::rename(tmp, &dest) {
+            Ok(()) => {
+                fsync_dir(&self.dir("objects"))?;
+                Ok(manifest.clone())
+            }
+            Err(_) if dest.exists() => {
+                // First writer wins; ours is a duplicate.
+                let _ = fs::remove_dir_all(tmp);
+                match self.check(key, true) {
+                    Entry::Valid(m) => Ok(*m),
+                    _ => Err(StoreError::Corrupt(format!(
+                        "entry {key} appeared concurrently but does not verify"
+                    ))),
+                }
+            }
+            Err(e) => Err(e)
+                .io_context(|| format!("publishing {}", dest.display()))
+                .map_err(StoreError::from),
+        }
+    }
+
+    /// Keys of every entry in `objects/`.
+    pub fn keys(&self) -> Vec<String> {
+        let mut keys: Vec<String> = fs::read_dir(self.dir("objects"))
+            .map(|rd| {
+                rd.filter_map(|e| e.ok())
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .collect()
+            })
+            .unwrap_or_default();
+        keys.sort();
+        keys
+    }
+
+    /// Removes every entry not in `keep`; returns (entries removed, bytes freed).
+    pub fn gc(
+        &self,
+        keep: &BTreeSet<String>,
+        dry_run: bool,
+    ) -> Result<(Vec<String>, u64), StoreError> {
+        let mut removed = Vec::new();
+        let mut bytes = 0;
+        for key in self.keys() {
+            if keep.contains(&key) {
+                continue;
+            }
+            let dir = self.entry_dir(&key);
+            bytes += dir_size(&dir);
+            if !dry_run {
+                // Rename first so a concurrent reader never sees a half-deleted entry.
+                let doomed = self.dir("tmp").join(owned_name(&format!("gc.{key}")));
+                fs::rename(&dir, &doomed).io_context(|| format!("removing {}", dir.display()))?;
+                fs::remove_dir_all(&doomed)
+                    .io_context(|| format!("removing {}", doomed.display()))?;
+            }
+            removed.push(key);
+        }
+        if !dry_run {
+            let _ = fs::remove_dir_all(self.dir("trash"));
+            let _ = fs::create_dir_all(self.dir("trash"));
+        }
+        Ok((removed, bytes))
+    }
+}
+
+/// Creates `path` with `bytes`, synced to disk.
+fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    let mut f = File::create(path).io_context(|| format!("creating {}", path.display()))?;
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .io_context(|| format!("writing {} (disk full?)", path.display()))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::{array::Int64Array, datatypes::Schema, record_batch::RecordBatch};
+    use std::sync::Arc;
+
+    fn tables(v: i64) -> Tables {
+        let schema = stages::schema::get("test_numbers").unwrap();
+        let b =
+            RecordBatch::try_new(schema, vec![Arc::new(Int64Array::from(vec![v, v + 1]))]).unwrap();
+        Tables::from([("test_numbers".to_string(), b)])
+    }
+
+    fn manifest(key: &str) -> Manifest {
+        Manifest {
+            key: key.into(),
+            kind: "test_source".into(),
+            version: 1,
+            stage: "a".into(),
+            params: serde_json::json!({}),
+            inputs: BTreeMap::new(),
+            files: BTreeMap::new(),
+            schemas: BTreeMap::new(),
+            output_digest: String::new(),
+            wall_s: 0.0,
+            cpu_s: 0.0,
+            peak_rss_bytes: 0,
+            started: 0.0,
+            finished: 0.0,
+            tool_version: "test".into(),
+        }
+    }
+
+    #[test]
+    fn publish_then_load_round_trips_and_detects_corruption() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let m = store.publish(manifest("k1"), &tables(5)).unwrap();
+        let Entry::Valid(m2) = store.check("k1", true) else {
+            panic!("not valid")
+        };
+        assert_eq!(m2.output_digest, m.output_digest);
+        let t = store.load(&m2).unwrap();
+        assert_eq!(t["test_numbers"], tables(5)["test_numbers"]);
+        assert_eq!(
+            *t["test_numbers"].schema(),
+            Schema::clone(&stages::schema::get("test_numbers").unwrap())
+        );
+        assert!(fs::read_dir(dir.path().join("tmp"))
+            .unwrap()
+            .next()
+            .is_none());
+
+        // Same content, same digest: the basis of early cutoff.
+        let again = store.publish(manifest("k2"), &tables(5)).unwrap();
+        assert_eq!(again.output_digest, m.output_digest);
+
+        // Flip one byte in the middle of the parquet file.
+        let f = dir.path().join("objects/k1/test_numbers.parquet");
+        let mut bytes = fs::read(&f).unwrap();
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x40;
+        fs::write(&f, &bytes).unwrap();
+        match store.check("k1", false) {
+            Entry::Corrupt(why) => assert!(why.contains("blake3"), "{why}"),
+            _ => panic!("flipped byte not detected"),
+        }
+        store.quarantine("k1").unwrap();
+        assert!(matches!(store.check("k1", false), Entry::Missing));
+    }
+
+    #[test]
+    fn truncation_and_deletion_are_detected() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        store.publish(manifest("k"), &tables(1)).unwrap();
+        let f = dir.path().join("objects/k/test_numbers.parquet");
+        let len = fs::metadata(&f).unwrap().len();
+        fs::OpenOptions::new()
+            .write(true)
+            .open(&f)
+            .unwrap()
+            .set_len(len - 3)
+            .unwrap();
+        assert!(matches!(store.check("k", false), Entry::Corrupt(w) if w.contains("bytes")));
+        fs::remove_file(&f).unwrap();
+        assert!(matches!(store.check("k", false), Entry::Corrupt(w) if w.contains("missing")));
+        fs::write(dir.path().join("objects/k/manifest.json"), b"{").unwrap();
+        assert!(matches!(store.check("k", false), Entry::Corrupt(w) if w.contains("malformed")));
+    }
+}

@@ -1,0 +1,348 @@
+//! Who may write the cache. Per entry, [`KeyLock`]: `locks/<key>.lock`, created by the
+//! hard-link trick (atomic on NFS) and kept alive by a heartbeat, so many runs on many machines
+//! compute each entry once; a lock whose holder died is broken by the next run. For the whole
+//! cache, [`RunLock`]: an flock shared by every `pipe run` and exclusive for `pipe gc`.
+
+use std::{
+    fs::{self, File},
+    io::{Read, Write},
+    os::unix::fs::MetadataExt,
+    path::{Path, PathBuf},
+    sync::{
+        atomic::{AtomicBool, Ordering},
+        Arc,
+    },
+    time::{Duration, Instant, SystemTime},
+};
+
+use super::{
+    error::StoreError,
+    files::{host_name, is_leftover, owned_name, pid_alive, STALE_LOCK_S},
+    layout::Store,
+};
+use crate::error::{IoContext, IoError};
+
+/// How often a held [`KeyLock`] refreshes its file's mtime.
+const HEARTBEAT_S: u64 = 20;
+
+/// The content of a lock file: `PID HOST NONCE`, and its inode and age.
+struct LockHolder {
+    pid: u32,
+    host: String,
+    ino: u64,
+    age_s: f64,
+}
+
+impl LockHolder {
+    fn read(path: &Path) -> Option<LockHolder> {
+        let meta = fs::metadata(path).ok()?;
+        let text = fs::read_to_string(path).ok()?;
+        let mut it = text.split_whitespace();
+        let pid = it.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+        let host = it.next().unwrap_or("?").to_string();
+        let age_s = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.elapsed().ok())
+            .map_or(0.0, |d| d.as_secs_f64());
+        Some(LockHolder {
+            pid,
+            host,
+            ino: meta.ino(),
+            age_s,
+        })
+    }
+
+    fn is_stale(&self) -> bool {
+        (self.host == host_name() && !pid_alive(self.pid)) || self.age_s > STALE_LOCK_S
+    }
+
+    fn describe(&self) -> String {
+        format!("process {} on {}", self.pid, self.host)
+    }
+}
+
+/// The lock of one cache entry while this process computes it: `locks/<key>.lock`, refreshed
+/// by a heartbeat thread, removed on drop (if it is still ours).
+pub struct KeyLock {
+    path: PathBuf,
+    nonce: String,
+    stop: Arc<AtomicBool>,
+    beat: Option<std::thread::JoinHandle<()>>,
+}
+
+impl KeyLock {
+    fn start(path: PathBuf, nonce: String) -> KeyLock {
+        let stop = Arc::new(AtomicBool::new(false));
+        let (p, s) = (path.clone(), stop.clone());
+        let beat = std::thread::spawn(move || {
+            let mut last = Instant::now();
+            while !s.load(Ordering::Relaxed) {
+                std::thread::sleep(Duration::from_millis(100));
+                if last.elapsed().as_secs() >= HEARTBEAT_S {
+                    last = Instant::now();
+                    let _ = File::options()
+                        .write(true)
+                        .open(&p)
+                        .and_then(|f| f.set_modified(SystemTime::now()));
+                }
+            }
+        });
+        KeyLock {
+            path,
+            nonce,
+            stop,
+            beat: Some(beat),
+        }
+    }
+}
+
+impl Drop for KeyLock {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(b) = self.beat.take() {
+            let _ = b.join();
+        }
+        if fs::read_to_string(&self.path).is_ok_and(|t| t.contains(&self.nonce)) {
+            let _ = fs::remove_file(&self.path);
+        }
+    }
+}
+
+impl Store {
+    /// Removes leftovers of interrupted runs: temporary entries and lock files of processes
+    /// that are gone (on this host) or silent for [`STALE_LOCK_S`]. Other runs' live work is
+    /// left alone, so this is safe while they run.
+    pub fn clean_tmp(&self) -> usize {
+        let mut n = 0;
+        if let Ok(rd) = fs::read_dir(self.dir("tmp")) {
+            for e in rd.filter_map(|e| e.ok()) {
+                if is_leftover(&e.path()) && fs::remove_dir_all(e.path()).is_ok() {
+                    n += 1;
+                }
+            }
+        }
+        if let Ok(rd) = fs::read_dir(self.dir("locks")) {
+            for e in rd.filter_map(|e| e.ok()) {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with('.') && is_leftover(&e.path()) {
+                    let _ = fs::remove_file(e.path());
+                } else if let Some(key) = name.strip_suffix(".lock") {
+                    if self.break_stale_lock(key).is_some() {
+                        n += 1;
+                    }
+                }
+            }
+        }
+        n
+    }
+
+    fn lock_path(&self, key: &str) -> PathBuf {
+        self.dir("locks").join(format!("{key}.lock"))
+    }
+
+    /// If the lock of `key` is stale, breaks it and returns who held it; `None` when it is
+    /// held by a live process or free.
+    fn break_stale_lock(&self, key: &str) -> Option<String> {
+        let path = self.lock_path(key);
+        let holder = LockHolder::read(&path)?;
+        if !holder.is_stale() {
+            return None;
+        }
+        // Rename it away (only one breaker succeeds), then make sure we broke that lock and
+        // not a fresh one taken meanwhile; a fresh one is put back.
+        let aside = path.with_file_name(format!(".{}", owned_name(&format!("{key}.broken"))));
+        if fs::rename(&path, &aside).is_err() {
+            return None;
+        }
+        let moved_ino = fs::metadata(&aside).map(|m| m.ino()).unwrap_or(0);
+        if moved_ino != holder.ino {
+            let _ = fs::hard_link(&aside, &path);
+            let _ = fs::remove_file(&aside);
+            return None;
+        }
+        let _ = fs::remove_file(&aside);
+        Some(holder.describe())
+    }
+
+    /// Tries once to take the lock of entry `key`: the lock, or who holds it. A stale lock is
+    /// broken and taken.
+    pub fn try_lock_key(&self, key: &str) -> Result<Result<KeyLock, String>, StoreError> {
+        let dir = self.dir("locks");
+        fs::create_dir_all(&dir).io_context(|| format!("creating {}", dir.display()))?;
+        let path = self.lock_path(key);
+        let nonce = owned_name("lock");
+        let uniq = dir.join(format!(".{key}.{nonce}"));
+        let content = format!("{} {} {nonce}\n", std::process::id(), host_name());
+        let written = File::create(&uniq)
+            .and_then(|mut f| f.write_all(content.as_bytes()).and_then(|()| f.sync_all()))
+            .io_context(|| format!("writing lock file {} (disk full?)", uniq.display()));
+        if let Err(e) = written {
+            let _ = fs::remove_file(&uniq);
+            return Err(e.into());
+        }
+        let result = (|| {
+            for _ in 0..5 {
+                if link_lock(&uniq, &path, &content)? {
+                    return Ok(Ok(KeyLock::start(path.clone(), nonce.clone())));
+                }
+                if self.break_stale_lock(key).is_some() {
+                    continue;
+                }
+                match LockHolder::read(&path) {
+                    Some(h) => return Ok(Err(h.describe())),
+                    None => continue, // released meanwhile
+                }
+            }
+            Ok(Err(
+                "another process (the lock keeps changing hands)".to_string()
+            ))
+        })();
+        let _ = fs::remove_file(&uniq);
+        result
+    }
+
+    /// Takes the lock of entry `key`, waiting while a live process holds it (`waiting` is
+    /// called once with the holder); with `no_wait`, a held lock is an error naming the holder.
+    pub fn lock_key(
+        &self,
+        key: &str,
+        no_wait: bool,
+        mut waiting: impl FnMut(&str),
+    ) -> Result<KeyLock, StoreError> {
+        let mut said = false;
+        let mut pause = Duration::from_millis(50);
+        loop {
+            match self.try_lock_key(key)? {
+                Ok(lock) => return Ok(lock),
+                Err(holder) if no_wait => {
+                    return Err(StoreError::Locked {
+                        cache: self.root.clone(),
+                        holder,
+                        entry: Some(key.to_string()),
+                    })
+                }
+                Err(holder) => {
+                    if !said {
+                        waiting(&holder);
+                        said = true;
+                    }
+                    std::thread::sleep(pause);
+                    pause = (pause * 2).min(Duration::from_secs(2));
+                }
+            }
+        }
+    }
+}
+
+/// Links our unique file `uniq` as the lock `path`: whether we got the lock.
+fn link_lock(uniq: &Path, path: &Path, content: &str) -> Result<bool, StoreError> {
+    // The hard-link trick: link(2) is atomic on NFS, and a lost reply is caught by the link
+    // count of our own file.
+    Ok(match fs::hard_link(uniq, path) {
+        Ok(()) => true,
+        Err(_) if fs::metadata(uniq).is_ok_and(|m| m.nlink() == 2) => true,
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+        Err(_) => {
+            // File systems without hard links: exclusive create.
+            match fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(path)
+            {
+                Ok(mut f) => {
+                    f.write_all(content.as_bytes())
+                        .and_then(|()| f.sync_all())
+                        .io_context(|| {
+                            format!("writing lock file {} (disk full?)", path.display())
+                        })?;
+                    true
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+                Err(source) => {
+                    return Err(IoError {
+                        what: format!("creating lock file {}", path.display()),
+                        source,
+                    }
+                    .into())
+                }
+            }
+        }
+    })
+}
+
+/// A lock on the whole cache (flock on `.pipe/lock`): shared by every `pipe run`, exclusive for
+/// `pipe gc`, which deletes entries. The kernel releases the lock of a process that died. Where
+/// the file system has no flock (some NFS set-ups), it is skipped: the per-entry locks still
+/// hold.
+pub struct RunLock {
+    _file: File,
+}
+
+impl RunLock {
+    /// Takes the lock (`exclusive` for gc); if it is taken the other way, waits (printing who
+    /// holds it) or, with `no_wait`, fails with a message naming the holder.
+    pub fn acquire(root: &Path, no_wait: bool, exclusive: bool) -> Result<RunLock, StoreError> {
+        use std::os::fd::AsRawFd;
+        let path = root.join("lock");
+        let mut file = fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .io_context(|| format!("opening lock file {}", path.display()))?;
+        let fd = file.as_raw_fd();
+        let mode = if exclusive {
+            libc::LOCK_EX
+        } else {
+            libc::LOCK_SH
+        };
+        let unsupported = |e: &std::io::Error| {
+            matches!(
+                e.raw_os_error(),
+                Some(libc::ENOLCK) | Some(libc::EOPNOTSUPP) | Some(libc::ENOSYS)
+            )
+        };
+        // SAFETY: flock on a file descriptor we own.
+        if unsafe { libc::flock(fd, mode | libc::LOCK_NB) } != 0 {
+            let err = std::io::Error::last_os_error();
+            if unsupported(&err) {
+                return Ok(RunLock { _file: file });
+            }
+            let mut holder = String::new();
+            let _ = file.read_to_string(&mut holder);
+            let holder = holder.trim();
+            let who = if exclusive || holder.is_empty() {
+                "another process (`pipe run` or `pipe gc`)".to_string()
+            } else {
+                format!("process {holder} (`pipe gc`)")
+            };
+            if no_wait {
+                return Err(StoreError::Locked {
+                    cache: root.to_path_buf(),
+                    holder: who,
+                    entry: None,
+                });
+            }
+            eprintln!("waiting for {who} on {} ...", root.display());
+            // SAFETY: as above; blocks until the holder releases or dies.
+            if unsafe { libc::flock(fd, mode) } != 0 {
+                return Err(StoreError::Flock {
+                    path,
+                    source: std::io::Error::last_os_error(),
+                });
+            }
+        }
+        if exclusive {
+            // Who holds the lock, for the message of a waiting run.
+            use std::io::Seek;
+            file.set_len(0)
+                .and_then(|()| file.seek(std::io::SeekFrom::Start(0)))
+                .and_then(|_| write!(file, "{} on {}", std::process::id(), host_name()))
+                .and_then(|()| file.flush())
+                .io_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
+        }
+        Ok(RunLock { _file: file })
+    }
+}
