@@ -616,7 +616,7 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
 }
 
 fn cmd_kinds(only: Option<&str>) -> Result<i32> {
-    let all = stages::registry();
+    let all = stages::kinds::registry();
     let mut shown = 0;
     for k in &all {
         if only.is_some_and(|o| o != k.kind()) || (only.is_none() && k.kind().starts_with("test_"))

@@ -201,7 +201,7 @@ fn rays_parallel_to_faces_and_along_edges_agree_at_1e4_m_offsets() {
 
 /// Runs one stage kind in process.
 fn stage(kind: &str, params: Value, inputs: &[(&str, &Tables)]) -> Tables {
-    let s = stages::find(kind).unwrap();
+    let s = stages::kinds::find(kind).unwrap();
     let p = s.canonical_params(&params).unwrap();
     let slots: BTreeMap<String, &Tables> =
         inputs.iter().map(|(k, t)| (k.to_string(), *t)).collect();
@@ -395,7 +395,7 @@ fn rays_that_hit_nothing_are_sky_and_a_scene_of_only_such_rays_is_a_clear_error(
         0,
         "a ray hit the object behind"
     );
-    let train = stages::find("train").unwrap();
+    let train = stages::kinds::find("train").unwrap();
     let p = train
         .canonical_params(&json!({"train": {"iterations": 2}}))
         .unwrap();

@@ -431,7 +431,7 @@ fn gc_removes_unreachable_entries() {
 #[test]
 fn schema_mismatch_between_code_and_data_schema_is_caught() {
     // Every table a real stage kind declares has a schema file, and every file parses.
-    for kind in stages::registry() {
+    for kind in stages::kinds::registry() {
         for t in kind.outputs() {
             assert!(
                 stages::schema::get(t).is_some(),

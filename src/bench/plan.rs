@@ -113,7 +113,7 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
                 .join(", ")
         ));
     };
-    let kind = stages::find(&s.kind).ok_or_else(|| format!("unknown kind `{}`", s.kind))?;
+    let kind = stages::kinds::find(&s.kind).ok_or_else(|| format!("unknown kind `{}`", s.kind))?;
     let mut cur = kind.default_params();
     let mut walked = Vec::new();
     for p in parts {
@@ -183,7 +183,7 @@ fn base_err(base_file: &Path, message: String) -> ConfigError {
 
 /// Names of the registry's kinds for which `has` holds (for messages).
 fn kinds_with(has: impl Fn(&dyn stages::Stage) -> bool) -> String {
-    let names: Vec<&str> = stages::registry()
+    let names: Vec<&str> = stages::kinds::registry()
         .iter()
         .filter(|k| has(k.as_ref()) && !k.kind().starts_with("test_"))
         .map(|k| k.kind())
@@ -198,7 +198,7 @@ fn scoring_role(
 ) -> Result<(String, &'static ScoreSpec), ConfigError> {
     let scoring: Vec<(&BaseStage, &'static ScoreSpec)> = base
         .iter()
-        .filter_map(|s| Some((s, stages::find(&s.kind)?.scores()?)))
+        .filter_map(|s| Some((s, stages::kinds::find(&s.kind)?.scores()?)))
         .collect();
     match scoring.as_slice() {
         [(one, spec)] => Ok((one.name.clone(), spec)),
@@ -228,7 +228,10 @@ fn budget_setting(
         .iter()
         .filter_map(|r| {
             let s = base.iter().find(|s| &s.name == r)?;
-            Some(format!("{r}.{}", stages::find(&s.kind)?.budget_param()?))
+            Some(format!(
+                "{r}.{}",
+                stages::kinds::find(&s.kind)?.budget_param()?
+            ))
         })
         .collect();
     match with_budget.as_slice() {

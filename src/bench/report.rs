@@ -479,7 +479,7 @@ mod tests {
         let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
         assert_eq!(and_list(&s(&["a"])), "a");
         assert_eq!(and_list(&s(&["a", "b", "c"])), "a, b and c");
-        let spec = stages::find("evaluate").unwrap().scores().unwrap();
+        let spec = stages::kinds::find("evaluate").unwrap().scores().unwrap();
         assert_eq!(
             units(&metrics(spec, spec.per_run)),
             "mIoU, Acc, PQ and delta<1.25 in %, depth RMSE in m"

@@ -129,8 +129,8 @@ fn kind_of(d: &Decl, loc: Loc) -> Result<(String, Box<dyn Stage>), ConfigError> 
             ))
         }
     };
-    let kind = stages::find(&kind_name).ok_or_else(|| {
-        let known: Vec<_> = stages::registry()
+    let kind = stages::kinds::find(&kind_name).ok_or_else(|| {
+        let known: Vec<_> = stages::kinds::registry()
             .iter()
             .map(|k| k.kind())
             .filter(|k| !k.starts_with("test_"))

@@ -29,7 +29,6 @@ pub mod schema;
 pub mod stage;
 pub mod tables;
 
-pub use kinds::registry::{find, registry};
 pub use stage::{
     InputSlot, Inputs, MethodInfo, MetricInfo, NoProgress, Progress, Result, ScoreSpec, Stage,
     StageError, Tables, TypedStage,

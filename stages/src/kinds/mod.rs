@@ -13,3 +13,5 @@ pub mod stereo_depth;
 pub mod synthetic_scene;
 pub mod testing;
 pub mod train;
+
+pub use registry::{find, registry};

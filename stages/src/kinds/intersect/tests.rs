@@ -170,7 +170,7 @@ fn output_matches_its_schema_file() {
     let t = run(&IntersectParams::default(), &scene(0)).unwrap();
     schema::check("ray_intervals", t.schema().as_ref()).unwrap();
     assert_eq!(t.schema(), schema::get("ray_intervals").unwrap());
-    assert!(crate::find("intersect").is_some());
+    assert!(crate::kinds::find("intersect").is_some());
 }
 
 #[test]

@@ -580,7 +580,7 @@ fn the_intersect_stage_accepts_the_scene() {
         ..SceneParams::default()
     };
     let t = to_tables(&p, &generate(&p, &NoProgress).unwrap()).unwrap();
-    let kind = crate::find("intersect").expect("intersect kind registered");
+    let kind = crate::kinds::find("intersect").expect("intersect kind registered");
     let inputs = crate::Inputs::new([("scene".to_string(), &t)].into_iter().collect());
     let out = kind
         .run(&kind.default_params(), &inputs, &NoProgress)
