@@ -406,7 +406,7 @@ fn resolve(
     depth: usize,
 ) -> Module {
     let mut k = path.len();
-    while k > 0 && !c.files.contains_key(&path[..k].to_vec()) {
+    while k > 0 && !c.files.contains_key(&path[..k]) {
         k -= 1;
     }
     let module = path[..k].to_vec();
