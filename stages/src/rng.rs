@@ -2,6 +2,18 @@
 //! and sample jitter (the synthetic scene's noise has its own hash-based generators in
 //! `scene::rng`).
 
+/// The SplitMix64 increment (2^64 / golden ratio).
+pub const GOLDEN_GAMMA: u64 = 0x9E37_79B9_7F4A_7C15;
+
+/// One SplitMix64 step from state `x`: a well-mixed 64-bit hash of `x` (the output the
+/// generator gives in state `x`; also the keyed hash behind `scene::rng`).
+pub fn mix(x: u64) -> u64 {
+    let mut z = x.wrapping_add(GOLDEN_GAMMA);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// SplitMix64: tiny, fast, seedable; good enough for initialisation, shuffling and jitter.
 #[derive(Debug, Clone)]
 pub struct SplitMix64 {
@@ -14,11 +26,9 @@ impl SplitMix64 {
     }
 
     pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        let z = mix(self.state);
+        self.state = self.state.wrapping_add(GOLDEN_GAMMA);
+        z
     }
 
     /// Uniform in `[0, 1)`.

@@ -1,27 +1,24 @@
 //! Small deterministic scenes for tests, benchmarks and pictures: a street-like scene of every
 //! primitive kind, random scenes of many primitives, and shape builders (a cube as a mesh, a
-//! star-shaped non-convex mesh, a star polygon). A tiny SplitMix64 generator keeps this free of
-//! a `rand` dependency.
+//! star-shaped non-convex mesh, a star polygon). The crate's SplitMix64 keeps this free of a
+//! `rand` dependency.
 
 use glam::{DAffine3, DQuat, DVec3};
 
 use super::{Camera, Primitive, Shape};
 use crate::labels;
+use crate::rng::{SplitMix64, GOLDEN_GAMMA};
 
-/// SplitMix64: a small, seedable, good-enough generator for test scenes.
+/// The crate's SplitMix64 with f64 draws and random directions, for test scenes.
 #[derive(Clone, Debug)]
-pub struct Rng(u64);
+pub struct Rng(SplitMix64);
 
 impl Rng {
     pub fn new(seed: u64) -> Self {
-        Self(seed ^ 0x9E37_79B9_7F4A_7C15)
+        Self(SplitMix64::new(seed ^ GOLDEN_GAMMA))
     }
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
     /// Uniform in `[lo, hi)`.
     pub fn range(&mut self, lo: f64, hi: f64) -> f64 {

@@ -4,13 +4,8 @@
 //! Every random decision draws from a stream derived from a key, never from a shared
 //! generator, so results do not depend on thread scheduling or on the order images are made.
 
-/// One SplitMix64 step: a well-mixed 64-bit hash of `x`.
-pub fn mix(mut x: u64) -> u64 {
-    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    x ^ (x >> 31)
-}
+pub use crate::rng::mix;
+use crate::rng::{SplitMix64, GOLDEN_GAMMA};
 
 /// Hash of a key (order matters).
 pub fn hash(key: &[u64]) -> u64 {
@@ -35,7 +30,7 @@ pub enum Purpose {
 /// A SplitMix64 stream.
 #[derive(Debug, Clone)]
 pub struct Rng {
-    state: u64,
+    stream: SplitMix64,
 }
 
 impl Rng {
@@ -43,12 +38,15 @@ impl Rng {
     pub fn new(seed: u64, purpose: Purpose, key: &[u64]) -> Self {
         let mut k = vec![seed, purpose as u64];
         k.extend_from_slice(key);
-        Self { state: hash(&k) }
+        // One step ahead of the key: the streams the scene has always drawn (its outputs are
+        // cached by content, so they must not change).
+        Self {
+            stream: SplitMix64::new(hash(&k).wrapping_add(GOLDEN_GAMMA)),
+        }
     }
 
     pub fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        mix(self.state)
+        self.stream.next_u64()
     }
 
     /// Uniform in [0, 1).
