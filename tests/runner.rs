@@ -451,3 +451,34 @@ fn schema_mismatch_between_code_and_data_schema_is_caught() {
         "{e}"
     );
 }
+
+#[test]
+fn a_long_stage_writes_progress_lines_when_stderr_is_not_a_terminal() {
+    // `output()` pipes stderr, as Slurm, nohup and CI do: no bars, but lines with the step,
+    // rate, elapsed time and ETA, and a closing line.
+    let ws = Workspace::new("stages:\n  slow:\n    uses: test_source\n    params: {sleep_ms: 3000}\n  quick:\n    uses: test_source\n    params: {value: 2}\n");
+    let (code, out, err) = ws.run(&[]);
+    assert_eq!(code, 0, "{out}\n{err}");
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| l.trim_start().starts_with("slow: "))
+        .collect();
+    assert!(
+        lines.len() >= 2,
+        "expected progress lines for `slow`:\n{err}"
+    );
+    let mid = lines[0];
+    for part in ["/300 (", "/s, elapsed 0:0", ", ETA 0:0", "| sleeping"] {
+        assert!(mid.contains(part), "`{part}` missing from `{mid}`:\n{err}");
+    }
+    let last = lines.last().unwrap();
+    assert!(
+        last.contains("300/300 (100%)") && last.contains("done"),
+        "{err}"
+    );
+    assert!(
+        !err.lines().any(|l| l.trim_start().starts_with("quick: ")),
+        "a stage too quick for a line printed one:\n{err}"
+    );
+    assert!(!err.contains('\u{1b}'), "terminal escapes in a log:\n{err}");
+}

@@ -10,12 +10,11 @@ use std::{
     time::Instant,
 };
 
-use indicatif::ProgressBar;
 use stages::{Inputs, Tables};
 
 use super::{
     error::StageFailure,
-    progress::{Bars, ProgressAdapter},
+    progress::{Bars, StageBar},
 };
 use crate::{
     config::Pipeline,
@@ -46,7 +45,7 @@ pub(super) struct Job {
     pub pre_overhead: f64,
     /// Printed once the lock is held and the body starts.
     pub running_line: String,
-    pub bar: ProgressBar,
+    pub bar: StageBar,
     pub bars: Bars,
 }
 
@@ -74,7 +73,7 @@ impl Job {
     /// Computes the stage (or finds it computed meanwhile).
     pub fn run(self) -> Finished {
         let f = self.work();
-        self.bar.finish_and_clear();
+        self.bar.finish();
         f
     }
 
@@ -135,7 +134,7 @@ impl Job {
             cpu: cpu_seconds() - c0,
             rss: peak_rss_bytes(),
         };
-        self.bar.finish_and_clear();
+        self.bar.finish();
         drop(ins);
         let ov2 = Instant::now();
         let published = result.and_then(|tables| self.publish(tables, &body));
@@ -256,7 +255,7 @@ fn execute(
     p: &Pipeline,
     i: usize,
     inputs: &BTreeMap<String, Arc<Tables>>,
-    bar: &ProgressBar,
+    bar: &StageBar,
 ) -> Result<Tables, StageFailure> {
     let s = &p.stages[i];
     let (stage, kind) = (s.name.clone(), s.kind.kind().to_string());
@@ -264,7 +263,7 @@ fn execute(
         .iter()
         .map(|(k, v)| (k.clone(), v.as_ref()))
         .collect();
-    let adapter = ProgressAdapter(bar.clone());
+    let adapter = bar.adapter();
     let tables = s
         .kind
         .run(&s.params, &Inputs::new(slots), &adapter)
