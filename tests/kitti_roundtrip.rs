@@ -236,5 +236,46 @@ fn the_exported_synthetic_scene_runs_through_the_pipeline_with_the_same_metrics(
         miou(&ma)
     );
     assert!(mc["panoptic_nerf"]["depth_rmse"].is_number(), "{mc}");
+
+    // Most of KITTI-360 has no 2D GT: the same shipped file, the GT directory gone, runs to the
+    // report, says plainly that nothing was evaluated, and exports the rendered labels of every
+    // image in the KITTI-360 layout.
+    fs::remove_dir_all(root.join("data_2d_semantics")).unwrap();
+    kitti.run_ok(&args);
+    let no_gt = kitti.dir().join("no-gt");
+    for stage in ["evaluate", "render", "report"] {
+        let dir = no_gt.join(stage);
+        let mut export = vec![stage, "--to", dir.to_str().unwrap()];
+        export.extend(&args);
+        let (code, out, err) = kitti.cmd("export", &export);
+        assert_eq!(code, 0, "export {stage}: {out}{err}");
+    }
+    let m: serde_json::Value =
+        serde_json::from_slice(&fs::read(no_gt.join("evaluate/metrics.json")).unwrap()).unwrap();
+    assert!(
+        m["not_evaluated"]
+            .as_str()
+            .unwrap()
+            .contains("no evaluation frame with GT"),
+        "{m}"
+    );
+    assert_eq!(m["panoptic_nerf"]["frames"], 0.0, "{m}");
+    assert!(m["panoptic_nerf"]["miou"].is_null(), "{m}");
+    let report = fs::read_to_string(no_gt.join("report/REPORT.md")).unwrap();
+    assert!(report.contains("## Not evaluated"), "{report}");
+    let html = fs::read_to_string(no_gt.join("report/report.html")).unwrap();
+    assert!(
+        html.contains("Rendered frames (no GT)") && html.contains("<img"),
+        "{html}"
+    );
+    let labels = no_gt.join(format!("render/data_2d_semantics/train/{SEQUENCE}"));
+    for frame in 20..=25 {
+        for cam in ["image_00", "image_01"] {
+            for sub in ["semantic", "semantic_rgb", "instance"] {
+                let f = labels.join(format!("{cam}/{sub}/{frame:010}.png"));
+                assert!(f.exists(), "{} missing", f.display());
+            }
+        }
+    }
     eprintln!("total {:.1} s", t0.elapsed().as_secs_f64());
 }

@@ -17,7 +17,7 @@ use arrow::{
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::metrics::scores::{METHODS, SCORES};
+use crate::metrics::scores::{self, METHODS, SCORES};
 use crate::{
     geometry::{self, Bvh, CameraRow, Primitive},
     labels,
@@ -553,12 +553,8 @@ impl TypedStage for Evaluate {
             .filter(|c| c.eval && p.cameras.contains(&c.camera))
             .collect();
         eval.sort_by_key(|c| (c.camera, c.frame));
-        if eval.is_empty() {
-            return Err(StageError::Input(
-                "the scene has no evaluation frames for the evaluated cameras (cameras.eval)"
-                    .into(),
-            ));
-        }
+        // No evaluation image (a sequence without 2D GT, the usual case): the tables say so
+        // (`frames` 0, every score null) and the report and `metrics.json` say why.
         let mut run = Evaluation::new(p)?;
         for (n, c) in eval.iter().enumerate() {
             progress.update(n as u64, eval.len() as u64, "evaluating");
@@ -580,7 +576,10 @@ impl TypedStage for Evaluate {
     }
 
     fn export(&self, _: &EvaluateParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        let json = metrics_json(t)?;
+        let mut json = metrics_json(t)?;
+        if t["eval_gt"].num_rows() == 0 {
+            json["not_evaluated"] = serde_json::json!(scores::NOT_EVALUATED);
+        }
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;

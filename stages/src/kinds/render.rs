@@ -262,7 +262,10 @@ impl TypedStage for Render {
 
 /// Writes KITTI-360-style PNGs of a `label_maps` table under `dir`: semantic/ (8-bit ids),
 /// semantic_rgb/, instance/ (16-bit id*1000+instance), panoptic_rgb/, depth/ (16-bit,
-/// metres*256), rgb/; right-camera files carry `_01`.
+/// metres*256), rgb/, named `{seq}_{frame}.png` as the KITTI-360 benchmark does (right-camera
+/// files carry `_01`); and the labels of every scene camera again in the data set's own layout,
+/// `data_2d_semantics/train/{seq}/image_{cam}/{semantic,semantic_rgb,instance}/{frame}.png`,
+/// which `kitti360_scene` reads back as GT.
 pub fn export_label_maps(t: &RecordBatch, dir: &Path) -> Result<Vec<PathBuf>> {
     let n = "label_maps";
     let seq = tables::get_strings(t, n, "sequence")?;
@@ -297,6 +300,23 @@ pub fn export_label_maps(t: &RecordBatch, dir: &Path) -> Result<Vec<PathBuf>> {
                 _ => pngio::write_rgb8(&path, w, h, rgb.value(r))?,
             }
             out.push(path);
+        }
+        // Novel views (camera ids 10, 11, ...) are no KITTI-360 camera.
+        if cams[r] < 10 {
+            let base = dir
+                .join("data_2d_semantics/train")
+                .join(seq.value(r))
+                .join(format!("image_{:02}", cams[r]));
+            let file = format!("{:010}.png", frames[r]);
+            let (sem_p, rgb_p, inst_p) = (
+                base.join("semantic").join(&file),
+                base.join("semantic_rgb").join(&file),
+                base.join("instance").join(&file),
+            );
+            pngio::write_gray8(&sem_p, w, h, sem.row(r))?;
+            pngio::write_rgb8(&rgb_p, w, h, &pngio::colorize(sem.row(r)))?;
+            pngio::write_gray16(&inst_p, w, h, inst.row(r))?;
+            out.extend([sem_p, rgb_p, inst_p]);
         }
     }
     Ok(out)

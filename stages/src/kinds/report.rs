@@ -253,7 +253,8 @@ impl Page {
         Ok(present)
     }
 
-    /// Per evaluation frame a row of pictures.
+    /// Per evaluation frame a row of pictures; without GT, the same for rendered frames spread
+    /// over the sequence (no GT and error columns).
     fn pictures(
         &mut self,
         p: &ReportParams,
@@ -262,19 +263,37 @@ impl Page {
         progress: &dyn Progress,
     ) -> Result<()> {
         let html = &mut self.html;
-        // Pictures.
         let images = Maps::new(inputs.table("scene", "images")?, "images")?;
         let pseudo = Maps::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
-        let maps = Maps::new(inputs.table("render", "label_maps")?, "label_maps")?;
+        let maps_t = inputs.table("render", "label_maps")?;
+        let maps = Maps::new(maps_t, "label_maps")?;
         let gt_t = inputs.table("evaluate", "eval_gt")?;
         let gt = Maps::new(gt_t, "eval_gt")?;
-        let gw = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "width")?;
-        let gh = tables::get_prim::<UInt32Type>(gt_t, "eval_gt", "height")?;
-        html.push_str(
-        "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
-         ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
-         (yellow near, purple far).</p><div class=\"legend\">",
-    );
+        let has_gt = gt_t.num_rows() > 0;
+        // The size of each pictured image, from the table its keys come from.
+        let (size_t, size_name, keys) = if has_gt {
+            let keys: Vec<(u32, u8)> = gt.index.keys().copied().take(p.max_frames).collect();
+            (gt_t, "eval_gt", keys)
+        } else {
+            let all: Vec<(u32, u8)> = maps.index.keys().copied().collect();
+            (maps_t, "label_maps", spread(&all, p.max_frames))
+        };
+        let widths = tables::get_prim::<UInt32Type>(size_t, size_name, "width")?;
+        let heights = tables::get_prim::<UInt32Type>(size_t, size_name, "height")?;
+        let size_index = if has_gt { &gt.index } else { &maps.index };
+        if has_gt {
+            html.push_str(
+                "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
+                 ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
+                 (yellow near, purple far).</p><div class=\"legend\">",
+            );
+        } else {
+            html.push_str(
+                "<h2>Rendered frames (no GT)</h2><p class=\"cap\">Frames spread over the sequence: RGB · pseudo labels (2D input) · \
+                 ours (learned semantic field) · panoptic (instances shaded) · rendered depth (yellow near, purple far).</p>\
+                 <div class=\"legend\">",
+            );
+        }
         for &id in present {
             let c = labels::color(id);
             let _ = write!(
@@ -287,12 +306,10 @@ impl Page {
             );
         }
         html.push_str("</div><table class=\"frames\">");
-        let keys: Vec<(u32, u8)> = gt.index.keys().copied().take(p.max_frames).collect();
         for (n, key) in keys.iter().enumerate() {
             progress.update(n as u64, keys.len() as u64, "pictures");
-            let r = gt.index[key];
-            let (w, h) = (gw[r], gh[r]);
-            let gsem = gt.u8(*key, "semantic")?.unwrap_or(&[]);
+            let r = size_index[key];
+            let (w, h) = (widths[r], heights[r]);
             let mut cells: Vec<(&str, Option<Vec<u8>>)> = vec![
                 ("RGB", images.bytes(*key, "rgb")?.map(<[u8]>::to_vec)),
                 (
@@ -302,8 +319,11 @@ impl Page {
             ];
             let ours = maps.u8(*key, "semantic")?;
             cells.push(("ours", ours.map(crate::pngio::colorize)));
-            cells.push(("ground truth", Some(crate::pngio::colorize(gsem))));
-            cells.push(("error", ours.map(|o| error_colors(o, gsem))));
+            if has_gt {
+                let gsem = gt.u8(*key, "semantic")?.unwrap_or(&[]);
+                cells.push(("ground truth", Some(crate::pngio::colorize(gsem))));
+                cells.push(("error", ours.map(|o| error_colors(o, gsem))));
+            }
             cells.push(("panoptic", maps.u16(*key, "instance")?.map(panoptic_colors)));
             cells.push((
                 "depth",
@@ -330,6 +350,38 @@ impl Page {
         }
         Ok(())
     }
+
+    /// In place of the score tables when nothing was evaluated: why, in plain words.
+    fn not_evaluated(&mut self) {
+        let why = crate::metrics::scores::NOT_EVALUATED;
+        self.md.push_str(&format!("## Not evaluated\n\n{why}.\n"));
+        let _ = write!(self.html, "<h2>Not evaluated</h2><p>{why}.</p>");
+    }
+}
+
+/// The label ids of the rendered semantic maps, ascending (the legend without scores).
+fn classes_rendered(maps: &RecordBatch) -> Result<Vec<u8>> {
+    let sem = tables::get_list::<UInt8Type>(maps, "label_maps", "semantic")?;
+    let mut seen = [false; 256];
+    for r in 0..maps.num_rows() {
+        for &l in sem.row(r) {
+            seen[l as usize] = true;
+        }
+    }
+    Ok((0..=255u8).filter(|&l| seen[l as usize]).collect())
+}
+
+/// At most `n` of `keys`, evenly spread from the first to the last.
+fn spread<T: Copy>(keys: &[T], n: usize) -> Vec<T> {
+    if keys.len() <= n {
+        return keys.to_vec();
+    }
+    if n <= 1 {
+        return keys.iter().take(n).copied().collect();
+    }
+    (0..n)
+        .map(|i| keys[i * (keys.len() - 1) / (n - 1)])
+        .collect()
 }
 
 impl TypedStage for Report {
@@ -385,8 +437,13 @@ impl TypedStage for Report {
             scene_name.value(0)
         };
         let mut page = Page::new(&p.title, scene_name);
-        page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
-        let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
+        let present = if inputs.table("evaluate", "eval_gt")?.num_rows() > 0 {
+            page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
+            page.class_iou(inputs.table("evaluate", "class_iou")?)?
+        } else {
+            page.not_evaluated();
+            classes_rendered(inputs.table("render", "label_maps")?)?
+        };
         if let Some(log) = inputs.optional_table("train", "train_log")? {
             if let Some(svg) = training_svg(log)? {
                 page.html.push_str("<h2>Training</h2>");

@@ -67,3 +67,8 @@ pub const SCORES: ScoreSpec = ScoreSpec {
     ablation: &["depth_rmse", "depth_delta_1_25", "miou", "acc"],
     plotted: &["miou", "pq", "depth_rmse"],
 };
+
+/// Why a scene has no scores: what `metrics.json` and the report say when no image was evaluated.
+pub const NOT_EVALUATED: &str = "No image was evaluated: the scene has no evaluation frame with \
+     GT labels for the evaluated cameras (KITTI-360 has 2D GT for few sequences; the rendered \
+     labels of every frame are in the render stage's export)";

@@ -31,7 +31,7 @@ mod params;
 pub mod parse;
 mod read;
 
-pub use params::Kitti360Params;
+pub use params::{EvalGt, Kitti360Params};
 
 use std::path::PathBuf;
 
@@ -114,7 +114,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     };
     progress.update(0, 4, "poses and calibration");
 
-    let cameras = camera_rows(p, &frames, &posed, &calib, origin);
+    let mut cameras = camera_rows(p, &frames, &posed, &calib, origin);
     let centres: Vec<DVec3> = cameras.iter().map(|r| r.cam.centre()).collect();
 
     // Primitives.
@@ -142,7 +142,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     progress.update(2, 4, "images");
     let gt_sem = load_gt_semantic(p, &all, w, h)?;
     let gt_inst = load_gt_instance(p, &all, w, h)?;
-    check_eval_gt(p, &cameras, &gt_sem, &gt_inst)?;
+    check_eval_gt(p, &mut cameras, &gt_sem, &gt_inst)?;
     let stereo = load_stereo_depth(p, &left, w, h)?;
     progress.update(3, 4, "labels");
 

@@ -31,6 +31,10 @@ pub struct Kitti360Params {
     pub eval_frames: Vec<u32>,
     /// See `eval_frames` (0 = no evaluation frames unless listed).
     pub eval_every: u32,
+    /// `auto`: of those, only images with GT (`gt_semantic`, and `gt_instance` when set) are
+    /// evaluated, the others are trained on like any frame (most of KITTI-360 has no 2D GT);
+    /// `required`: an evaluation image without GT is an error.
+    pub eval_gt: EvalGt,
     /// Pose file.
     pub poses: String,
     /// Rectified calibration file.
@@ -62,6 +66,14 @@ pub struct Kitti360Params {
     pub name: String,
 }
 
+/// Whether evaluation frames must have GT (see [`Kitti360Params::eval_gt`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EvalGt {
+    Auto,
+    Required,
+}
+
 impl Default for Kitti360Params {
     fn default() -> Self {
         Self {
@@ -73,6 +85,7 @@ impl Default for Kitti360Params {
             cameras: vec![0, 1],
             eval_frames: Vec::new(),
             eval_every: 5,
+            eval_gt: EvalGt::Auto,
             poses: "data_poses/{seq}/cam0_to_world.txt".into(),
             calibration: "calibration/perspective.txt".into(),
             bboxes: "data_3d_bboxes/train/{seq}.xml".into(),

@@ -13,7 +13,7 @@ use crate::labels;
 use crate::{Result, StageError};
 
 use super::parse::{self, err};
-use super::Kitti360Params;
+use super::{EvalGt, Kitti360Params};
 
 /// The primitives of the XML that matter for cameras at `centres` (scene frame), recentred.
 pub(super) fn load_primitives(
@@ -256,32 +256,37 @@ pub(super) fn load_gt_instance(
     })
 }
 
-/// Every evaluation image needs its GT labels and instances where the params ask for them.
+/// Every evaluation image needs its GT labels and instances where the params ask for them:
+/// with `eval_gt: required` a missing file is an error; with `auto` the image stops being an
+/// evaluation image (it is trained on like the others).
 pub(super) fn check_eval_gt(
     p: &Kitti360Params,
-    cameras: &[CameraRow],
+    cameras: &mut [CameraRow],
     gt_sem: &[Option<Vec<u8>>],
     gt_inst: &[Option<Vec<u16>>],
 ) -> Result<()> {
-    for (i, r) in cameras.iter().enumerate() {
-        if r.eval && (p.gt_semantic.is_some() && gt_sem[i].is_none()) {
-            return Err(err(
-                &p.path(p.gt_semantic.as_deref().unwrap_or(""), r.frame, r.camera),
-                format!(
-                    "missing: frame {} camera {} is an evaluation frame and needs GT labels",
-                    r.frame, r.camera
-                ),
-            ));
+    for (i, r) in cameras.iter_mut().enumerate() {
+        let missing = [
+            (&p.gt_semantic, gt_sem[i].is_none(), "labels"),
+            (&p.gt_instance, gt_inst[i].is_none(), "instances"),
+        ]
+        .into_iter()
+        .find(|(pat, absent, _)| pat.is_some() && *absent);
+        let Some((pat, _, what)) = missing.filter(|_| r.eval) else {
+            continue;
+        };
+        if p.eval_gt == EvalGt::Auto {
+            r.eval = false;
+            continue;
         }
-        if r.eval && (p.gt_instance.is_some() && gt_inst[i].is_none()) {
-            return Err(err(
-                &p.path(p.gt_instance.as_deref().unwrap_or(""), r.frame, r.camera),
-                format!(
-                    "missing: frame {} camera {} is an evaluation frame and needs GT instances",
-                    r.frame, r.camera
-                ),
-            ));
-        }
+        return Err(err(
+            &p.path(pat.as_deref().unwrap_or(""), r.frame, r.camera),
+            format!(
+                "missing: frame {} camera {} is an evaluation frame and needs GT {what} \
+                 (`eval_gt: required`; with `auto` it would be trained on, not evaluated)",
+                r.frame, r.camera
+            ),
+        ));
     }
     Ok(())
 }

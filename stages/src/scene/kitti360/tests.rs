@@ -370,11 +370,40 @@ fn broken_pngs_missing_files_and_frames_without_pose_are_errors() {
         &["expected a 16-bit single-channel instance PNG"],
     );
     std::fs::remove_file(&gi).unwrap();
+    let auto = p.clone();
+    let mut p = p;
+    p.eval_gt = EvalGt::Required;
     assert_error(
         &p,
         "image_00/instance/0000000007.png",
-        &["missing", "evaluation frame"],
+        &["missing", "evaluation frame", "eval_gt: required"],
     );
+    // `auto` (the default): that image is trained on, not evaluated; the others still are.
+    let eval_of = |p: &Kitti360Params| -> Vec<(u32, u8, bool)> {
+        let t = load(p, &NoProgress).unwrap();
+        cameras_from_table(&t["cameras"])
+            .unwrap()
+            .iter()
+            .map(|r| (r.frame, r.camera, r.eval))
+            .collect()
+    };
+    let with_gt = {
+        let gi_back = p.path(p.gt_instance.as_ref().unwrap(), 7, 0);
+        crate::pngio::write_gray16(&gi_back, 8, 4, &[7000; 32]).unwrap();
+        let e = eval_of(&auto);
+        std::fs::remove_file(&gi_back).unwrap();
+        e
+    };
+    let without = eval_of(&auto);
+    assert!(with_gt.contains(&(7, 0, true)), "{with_gt:?}");
+    assert_eq!(
+        without,
+        with_gt
+            .iter()
+            .map(|&(f, c, e)| (f, c, e && (f, c) != (7, 0)))
+            .collect::<Vec<_>>()
+    );
+    assert!(without.iter().any(|r| r.2), "{without:?}");
     std::fs::remove_dir_all(root).unwrap();
 }
 
