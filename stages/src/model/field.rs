@@ -31,7 +31,7 @@ pub struct FieldSamples {
 }
 
 /// A field with its weights loaded, ready for inference.
-pub trait Field {
+pub trait Field: Sync {
     fn spec(&self) -> &FieldSpec;
     /// Outputs at `positions` (`[R*S, 3]`, scene frame) of rays with view `directions` (`[R,
     /// 3]`, any length) and `samples` points each.

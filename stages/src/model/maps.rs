@@ -1,11 +1,13 @@
 //! Label maps of whole images from a trained field, whatever the engine: rays that cross no
 //! primitive are sky without any network evaluation; the others are sampled as in training
 //! (stratum centres), evaluated in chunks and composited per ray
-//! ([`crate::model::composite`]), stopping once transmittance is negligible.
+//! ([`crate::model::composite`]). The field is evaluated front to back in rounds of a few
+//! samples per ray, and a ray leaves once its transmittance is below the compositor's early-stop
+//! threshold, so the samples the compositor would skip are never evaluated.
 
 use rayon::prelude::*;
 
-use super::composite::{composite_ray, Scratch};
+use super::composite::{composite_ray, Composite, Scratch, EARLY_STOP_T};
 use super::field::{Field, FieldSamples, Heads};
 use crate::labels;
 use crate::sampling::{self, ImageInfo, RaySet, SamplingParams};
@@ -88,42 +90,14 @@ pub fn render_images(
             .filter(|&p| set.hits_anything(im.first_ray + p))
             .map(|p| (im.first_ray + p) as u32)
             .collect();
-        for chunk in hit_ids.chunks(r.chunk) {
-            let b = sampling::sample_batch(set, chunk, sampling, None);
-            let FieldSamples {
-                sigma,
-                rgb: col,
-                logits,
-            } = field.evaluate(&b.positions, &b.dirs, b.samples, Heads::ALL);
-            let s_n = b.samples;
-            if sigma.len() != chunk.len() * s_n
-                || col.len() != sigma.len() * 3
-                || logits.len() != sigma.len() * c_n
-            {
-                return Err(StageError::Failed(
-                    "the field returned outputs of unexpected size".into(),
-                ));
-            }
-            let results: Vec<_> = chunk
-                .par_iter()
-                .enumerate()
-                .map_init(
-                    || Scratch::new(c_n, t_n),
-                    |scratch, (i, &rid)| {
-                        let rs = i * s_n..(i + 1) * s_n;
-                        composite_ray(
-                            set,
-                            rid as usize,
-                            &b.t[rs.clone()],
-                            &b.deltas[rs.clone()],
-                            &sigma[rs.clone()],
-                            &col[rs.start * 3..rs.end * 3],
-                            &logits[rs.start * c_n..rs.end * c_n],
-                            scratch,
-                        )
-                    },
-                )
-                .collect();
+        // Chunks in parallel (each samples, marches and composites its rays), so the serial
+        // parts of one chunk overlap with the others' field evaluations.
+        let chunks: Vec<&[u32]> = hit_ids.chunks(r.chunk).collect();
+        let composited: Vec<Vec<Composite>> = chunks
+            .par_iter()
+            .map(|chunk| composite_chunk(set, sampling, field, chunk, c_n, t_n))
+            .collect::<Result<_>>()?;
+        for (chunk, results) in chunks.iter().zip(composited) {
             for (&rid, c) in chunk.iter().zip(results) {
                 let px = rid as usize - im.first_ray;
                 let label = set.classes[c.class];
@@ -143,8 +117,8 @@ pub fn render_images(
                         ((c.rgb[k] + rem * sky_rgb[k]).clamp(0.0, 1.0) * 255.0).round() as u8;
                 }
             }
-            progress(chunk.len() as u64, im);
         }
+        progress(hit_ids.len() as u64, im);
         progress(sky_ids.len() as u64, im);
         maps.push(ImageMaps {
             frame: im.frame,
@@ -161,4 +135,109 @@ pub fn render_images(
     }
     let n = set.images.len().max(1) as f32;
     Ok((maps, sky_sum.map(|v| v / n)))
+}
+
+/// Samples, evaluates and composites the rays `chunk` of `set`.
+fn composite_chunk(
+    set: &RaySet,
+    sampling: &SamplingParams,
+    field: &dyn Field,
+    chunk: &[u32],
+    c_n: usize,
+    t_n: usize,
+) -> Result<Vec<Composite>> {
+    let b = sampling::sample_batch(set, chunk, sampling, None);
+    let FieldSamples {
+        sigma,
+        rgb: col,
+        logits,
+    } = evaluate_marching(field, &b.positions, &b.dirs, &b.deltas, b.samples, c_n)?;
+    let s_n = b.samples;
+    let mut scratch = Scratch::new(c_n, t_n);
+    Ok(chunk
+        .iter()
+        .enumerate()
+        .map(|(i, &rid)| {
+            let rs = i * s_n..(i + 1) * s_n;
+            composite_ray(
+                set,
+                rid as usize,
+                &b.t[rs.clone()],
+                &b.deltas[rs.clone()],
+                &sigma[rs.clone()],
+                &col[rs.start * 3..rs.end * 3],
+                &logits[rs.start * c_n..rs.end * c_n],
+                &mut scratch,
+            )
+        })
+        .collect())
+}
+
+/// Samples per ray evaluated per round of [`evaluate_marching`].
+const MARCH_ROUND: usize = 8;
+
+/// The field at the samples (`positions` `[R, S, 3]`, `deltas` `[R, S]`, `directions` `[R, 3]`)
+/// that compositing reads: front to back in rounds of [`MARCH_ROUND`] samples per ray, dropping
+/// a ray once its transmittance is below [`EARLY_STOP_T`] (the compositor stops there too, and
+/// runs the same sums in the same order, so it never reads a sample left out; those stay 0).
+/// The field's outputs at a sample do not depend on which other samples share the call.
+pub fn evaluate_marching(
+    field: &dyn Field,
+    positions: &[f32],
+    directions: &[f32],
+    deltas: &[f32],
+    samples: usize,
+    classes: usize,
+) -> Result<FieldSamples> {
+    let rays = directions.len() / 3;
+    let n = rays * samples;
+    let mut out = FieldSamples {
+        sigma: vec![0.0; n],
+        rgb: vec![0.0; n * 3],
+        logits: vec![0.0; n * classes],
+    };
+    let mut log_t = vec![0f32; rays];
+    let mut alive: Vec<usize> = (0..rays).collect();
+    let (mut pos, mut dirs) = (Vec::new(), Vec::new());
+    let mut s0 = 0;
+    while s0 < samples && !alive.is_empty() {
+        let k = MARCH_ROUND.min(samples - s0);
+        pos.clear();
+        dirs.clear();
+        for &r in &alive {
+            pos.extend_from_slice(&positions[(r * samples + s0) * 3..(r * samples + s0 + k) * 3]);
+            dirs.extend_from_slice(&directions[r * 3..r * 3 + 3]);
+        }
+        let got = field.evaluate(&pos, &dirs, k, Heads::ALL);
+        let m = alive.len() * k;
+        if got.sigma.len() != m || got.rgb.len() != m * 3 || got.logits.len() != m * classes {
+            return Err(StageError::Failed(
+                "the field returned outputs of unexpected size".into(),
+            ));
+        }
+        for (a, &r) in alive.iter().enumerate() {
+            let (src, dst) = (a * k, r * samples + s0);
+            out.sigma[dst..dst + k].copy_from_slice(&got.sigma[src..src + k]);
+            out.rgb[dst * 3..(dst + k) * 3].copy_from_slice(&got.rgb[src * 3..(src + k) * 3]);
+            out.logits[dst * classes..(dst + k) * classes]
+                .copy_from_slice(&got.logits[src * classes..(src + k) * classes]);
+        }
+        // Transmittance after this round, as `composite_ray` sums it.
+        alive.retain(|&r| {
+            let lt = &mut log_t[r];
+            let round = r * samples + s0..r * samples + s0 + k;
+            for (&delta, &sigma) in deltas[round.clone()].iter().zip(&out.sigma[round]) {
+                if delta <= 0.0 {
+                    continue;
+                }
+                if lt.exp() < EARLY_STOP_T {
+                    return false;
+                }
+                *lt -= (sigma.max(0.0) * delta).min(1e4);
+            }
+            lt.exp() >= EARLY_STOP_T
+        });
+        s0 += k;
+    }
+    Ok(out)
 }
