@@ -192,7 +192,11 @@ impl Job {
             finished: unix_now(),
             tool_version: env!("CARGO_PKG_VERSION").into(),
         };
-        let m = self.store.publish(m, &tables)?;
+        let m = if self.forced {
+            self.store.publish_replacing(m, &tables)?
+        } else {
+            self.store.publish(m, &tables)?
+        };
         self.loaded
             .lock()
             .unwrap()

@@ -205,6 +205,37 @@ impl Store {
         result
     }
 
+    /// Publishes like [`Store::publish`], but a valid entry already under the key is moved to
+    /// `trash/` first when its output differs (what `--force` asks: a re-run after a code change
+    /// that forgot its VERSION bump must not leave the old bytes in place). The caller holds the
+    /// key's lock, so no other writer races; a reader in between sees the entry missing and
+    /// waits on the lock.
+    pub fn publish_replacing(
+        &self,
+        mut manifest: Manifest,
+        tables: &Tables,
+    ) -> Result<Manifest, StoreError> {
+        let key = manifest.key.clone();
+        let tmp = self.dir("tmp").join(owned_name(&key));
+        let result = self
+            .write_entry(&tmp, &mut manifest, tables)
+            .and_then(|()| {
+                let same = match self.check(&key, false) {
+                    Entry::Valid(old) => old.output_digest == manifest.output_digest,
+                    Entry::Missing => false,
+                    Entry::Corrupt(_) => false,
+                };
+                if !same && self.entry_dir(&key).exists() {
+                    self.quarantine(&key)?;
+                }
+                self.rename_into_objects(&tmp, &key, &manifest)
+            });
+        if result.is_err() {
+            let _ = fs::remove_dir_all(&tmp);
+        }
+        result
+    }
+
     /// Writes the tables and the manifest (completed with the files' sizes, hashes and output
     /// digest) into directory `tmp`, fsynced.
     fn write_entry(
@@ -394,6 +425,36 @@ mod tests {
         }
         store.quarantine("k1").unwrap();
         assert!(matches!(store.check("k1", false), Entry::Missing));
+    }
+
+    #[test]
+    fn a_forced_publish_replaces_different_bytes_and_a_plain_one_keeps_the_first() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let first = store.publish(manifest("k"), &tables(1)).unwrap();
+        let kept = store.publish(manifest("k"), &tables(2)).unwrap();
+        assert_eq!(kept.output_digest, first.output_digest, "first writer wins");
+        let same = store.publish_replacing(manifest("k"), &tables(1)).unwrap();
+        assert_eq!(same.output_digest, first.output_digest);
+        assert!(fs::read_dir(dir.path().join("trash"))
+            .unwrap()
+            .next()
+            .is_none());
+        let new = store.publish_replacing(manifest("k"), &tables(2)).unwrap();
+        assert_ne!(new.output_digest, first.output_digest);
+        let Entry::Valid(m) = store.check("k", true) else {
+            panic!("not valid")
+        };
+        assert_eq!(m.output_digest, new.output_digest);
+        assert_eq!(
+            store.load(&m).unwrap()["test_numbers"],
+            tables(2)["test_numbers"]
+        );
+        assert_eq!(fs::read_dir(dir.path().join("trash")).unwrap().count(), 1);
+        assert!(fs::read_dir(dir.path().join("tmp"))
+            .unwrap()
+            .next()
+            .is_none());
     }
 
     #[test]
