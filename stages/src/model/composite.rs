@@ -15,6 +15,21 @@ use crate::sampling::{fixed_instance_at, fixed_semantic_at, RaySet};
 /// Transmittance below which the rest of a ray is skipped.
 pub const EARLY_STOP_T: f32 = 1e-4;
 
+/// One sample (of width `delta` > 0) of the front-to-back march, given the log transmittance
+/// before it: `None` once the transmittance is below [`EARLY_STOP_T`] (the rest of the ray is
+/// skipped), else that transmittance and the sample's optical depth, with `log_t` advanced.
+/// The compositor and rendering's marching evaluation share it, so they stop at the same sample.
+#[inline]
+pub fn march_step(log_t: &mut f32, sigma: f32, delta: f32) -> Option<(f32, f32)> {
+    let tr = log_t.exp();
+    if tr < EARLY_STOP_T {
+        return None;
+    }
+    let sd = (sigma.max(0.0) * delta).min(1e4);
+    *log_t -= sd;
+    Some((tr, sd))
+}
+
 /// What one ray composites to.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Composite {
@@ -110,13 +125,10 @@ pub fn composite_ray(
         if delta[i] <= 0.0 {
             continue;
         }
-        let tr = log_t.exp();
-        if tr < EARLY_STOP_T {
+        let Some((tr, sd)) = march_step(&mut log_t, sigma[i], delta[i]) else {
             break;
-        }
-        let sd = (sigma[i].max(0.0) * delta[i]).min(1e4);
+        };
         let w = tr * (1.0 - (-sd).exp());
-        log_t -= sd;
         if w <= 0.0 {
             continue;
         }

@@ -7,7 +7,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite_ray, Composite, Scratch, EARLY_STOP_T};
+use super::composite::{composite_ray, march_step, Composite, Scratch, EARLY_STOP_T};
 use super::field::{Field, FieldSamples, Heads};
 use crate::labels;
 use crate::sampling::{self, ImageInfo, RaySet, SamplingParams};
@@ -222,7 +222,7 @@ pub fn evaluate_marching(
             out.logits[dst * classes..(dst + k) * classes]
                 .copy_from_slice(&got.logits[src * classes..(src + k) * classes]);
         }
-        // Transmittance after this round, as `composite_ray` sums it.
+        // Transmittance after this round, by the compositor's own step.
         alive.retain(|&r| {
             let lt = &mut log_t[r];
             let round = r * samples + s0..r * samples + s0 + k;
@@ -230,10 +230,9 @@ pub fn evaluate_marching(
                 if delta <= 0.0 {
                     continue;
                 }
-                if lt.exp() < EARLY_STOP_T {
+                if march_step(lt, sigma, delta).is_none() {
                     return false;
                 }
-                *lt -= (sigma.max(0.0) * delta).min(1e4);
             }
             lt.exp() >= EARLY_STOP_T
         });
