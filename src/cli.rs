@@ -460,12 +460,12 @@ fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<Manifest>)> {
 
 fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Result<i32> {
     let (store, m) = fresh_entry(p, stage)?;
-    let tables = store.load(&m)?;
+    let tables = store.open_tables(&m, false)?;
     if let Some(t) = table {
-        if !tables.contains_key(t) {
+        if !tables.contains(t) {
             return Err(usage(format!(
                 "stage `{stage}` has no table `{t}` (tables: {})",
-                tables.keys().cloned().collect::<Vec<_>>().join(", ")
+                tables.names().collect::<Vec<_>>().join(", ")
             )));
         }
     }
@@ -476,7 +476,8 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
         m.key,
         store.entry_dir(&m.key).display()
     );
-    for (name, batch) in &tables {
+    for stored in tables.iter() {
+        let name = stored.name();
         if table.is_some_and(|t| t != name) {
             continue;
         }
@@ -484,20 +485,24 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
         let size = m.files.get(&file).map_or(0, |f| f.size);
         println!(
             "\ntable `{name}`: {} rows, {} ({file})",
-            batch.num_rows(),
+            stored.num_rows(),
             runner::fmt_bytes(size)
         );
-        for f in batch.schema().fields() {
+        for f in stored.schema().fields() {
             println!(
                 "  {}: {}",
                 f.name(),
                 stages::schema::format_type(f.data_type())
             );
         }
-        let n = head.min(batch.num_rows());
+        let n = head.min(stored.num_rows());
         if n == 0 {
             continue;
         }
+        // Only the rows shown are read.
+        let batch = stored
+            .rows(0..n, None)
+            .map_err(|e| anyhow!("reading table `{name}` of stage `{stage}`: {e}"))?;
         let opts = FormatOptions::default();
         let fmts = batch
             .columns()
@@ -533,7 +538,7 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
 
 fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
     let (store, m) = fresh_entry(p, stage)?;
-    let tables = store.load(&m)?;
+    let tables = store.open_tables(&m, false)?;
     let s = &p.stages[p.index_of(stage).unwrap()];
     std::fs::create_dir_all(to).with_context(|| format!("creating {}", to.display()))?;
     let files = s

@@ -11,7 +11,7 @@
 
 mod common;
 
-use std::{collections::BTreeMap, fs, path::PathBuf};
+use std::{fs, path::PathBuf};
 
 use arrow::{
     array::{Array, AsArray},
@@ -27,7 +27,7 @@ use stages::{
     model::burn::loss::{depth_mse, label_nll},
     model::burn::volume::{render_depth, render_semantics, render_weights},
     model::burn::Backend,
-    tables, Inputs, NoProgress, Tables,
+    tables, MemoryInputs, NoProgress, Tables,
 };
 
 // ---- volume rendering ----
@@ -203,9 +203,8 @@ fn rays_parallel_to_faces_and_along_edges_agree_at_1e4_m_offsets() {
 fn stage(kind: &str, params: Value, inputs: &[(&str, &Tables)]) -> Tables {
     let s = stages::kinds::find(kind).unwrap();
     let p = s.canonical_params(&params).unwrap();
-    let slots: BTreeMap<String, &Tables> =
-        inputs.iter().map(|(k, t)| (k.to_string(), *t)).collect();
-    s.run(&p, &Inputs::new(slots), &NoProgress)
+    let mem = MemoryInputs::new(inputs.iter().map(|(k, t)| (*k, (*t).clone())));
+    s.run(&p, &mem.inputs(), &NoProgress)
         .unwrap_or_else(|e| panic!("stage {kind}: {e}"))
 }
 
@@ -399,9 +398,9 @@ fn rays_that_hit_nothing_are_sky_and_a_scene_of_only_such_rays_is_a_clear_error(
     let p = train
         .canonical_params(&json!({"train": {"iterations": 2}}))
         .unwrap();
-    let slots = BTreeMap::from([("scene".to_string(), &scene), ("rays".to_string(), &rays)]);
+    let mem = MemoryInputs::new([("scene", scene.clone()), ("rays", rays.clone())]);
     let e = train
-        .run(&p, &Inputs::new(slots), &NoProgress)
+        .run(&p, &mem.inputs(), &NoProgress)
         .expect_err("training on rays that cross nothing must fail")
         .to_string();
     assert!(

@@ -5,12 +5,12 @@
 //! time, CPU time and peak RSS of the body.
 
 use std::{
-    collections::{BTreeMap, BTreeSet, HashMap},
+    collections::{BTreeMap, BTreeSet, HashSet},
     sync::{Arc, Mutex},
     time::Instant,
 };
 
-use stages::{Inputs, Tables};
+use stages::{Inputs, TableSet, Tables};
 
 use super::{
     error::StageFailure,
@@ -18,14 +18,15 @@ use super::{
 };
 use crate::{
     config::Pipeline,
-    store::{unix_now, Entry, Manifest, Store},
+    store::{unix_now, Entry, Manifest, PendingEntry, Store},
 };
 
 /// The manifests of a gathered slot's stage in every scene: (scene, manifest).
 pub(super) type SceneManifests = Vec<(String, Box<Manifest>)>;
 
-/// Tables already read from the cache during this run, by key.
-pub(super) type Loaded = Arc<Mutex<HashMap<String, Arc<Tables>>>>;
+/// Keys of the entries this run wrote or verified (hashed) already: opening them again reads
+/// without hashing every file once more.
+pub(super) type Loaded = Arc<Mutex<HashSet<String>>>;
 
 /// Everything the thread that computes stage `i` needs.
 pub(super) struct Job {
@@ -123,11 +124,16 @@ impl Job {
             Ok(ins) => ins,
             Err(e) => return self.failed(e),
         };
+        // Streamed output tables are written into the new entry while the stage runs.
+        let pending = match self.store.begin(&self.key) {
+            Ok(p) => p,
+            Err(e) => return self.failed(e.into()),
+        };
         let load_s = ov1.elapsed().as_secs_f64();
         reset_peak_rss();
         let started = unix_now();
         let (w0, c0) = (Instant::now(), cpu_seconds());
-        let result = execute(&self.p, self.i, &ins, &self.bar);
+        let result = execute(&self.p, self.i, &ins, &pending, &self.bar);
         let body = Measured {
             started,
             wall: w0.elapsed().as_secs_f64(),
@@ -137,7 +143,7 @@ impl Job {
         self.bar.finish();
         drop(ins);
         let ov2 = Instant::now();
-        let published = result.and_then(|tables| self.publish(tables, &body));
+        let published = result.and_then(|tables| self.publish(pending, tables, &body));
         let overhead = load_s + ov2.elapsed().as_secs_f64() + self.pre_overhead;
         Finished {
             i: self.i,
@@ -150,7 +156,7 @@ impl Job {
     }
 
     /// The input tables by slot: gathered slots first, then the plain ones.
-    fn load_inputs(&self) -> Result<BTreeMap<String, Arc<Tables>>, StageFailure> {
+    fn load_inputs(&self) -> Result<BTreeMap<String, TableSet>, StageFailure> {
         let mut ins = BTreeMap::new();
         for (slot, parts) in &self.gathered {
             let spec = self.p.stages[self.i]
@@ -163,7 +169,7 @@ impl Job {
                 .iter()
                 .map(|(scene, m)| Ok((scene.clone(), load_cached(&self.store, &self.loaded, m)?)))
                 .collect::<Result<Vec<_>, StageFailure>>()?;
-            ins.insert(slot.clone(), Arc::new(gather_tables(tables, &parts)?));
+            ins.insert(slot.clone(), gather_tables(tables, &parts)?.into());
         }
         for (slot, m) in &self.upstream {
             ins.insert(slot.clone(), load_cached(&self.store, &self.loaded, m)?);
@@ -171,9 +177,14 @@ impl Job {
         Ok(ins)
     }
 
-    /// Publishes the body's tables as the entry of this job's key, and keeps them for the
-    /// stages downstream.
-    fn publish(&self, tables: Tables, body: &Measured) -> Result<Manifest, StageFailure> {
+    /// Publishes the body's tables (and the ones it streamed into `pending`) as the entry of
+    /// this job's key.
+    fn publish(
+        &self,
+        pending: PendingEntry,
+        tables: Tables,
+        body: &Measured,
+    ) -> Result<Manifest, StageFailure> {
         let s = &self.p.stages[self.i];
         let m = Manifest {
             key: self.key.clone(),
@@ -192,25 +203,20 @@ impl Job {
             finished: unix_now(),
             tool_version: env!("CARGO_PKG_VERSION").into(),
         };
-        let m = if self.forced {
-            self.store.publish_replacing(m, &tables)?
-        } else {
-            self.store.publish(m, &tables)?
-        };
-        self.loaded
-            .lock()
-            .unwrap()
-            .insert(m.key.clone(), Arc::new(tables));
+        let m = self
+            .store
+            .publish_pending(pending, m, &tables, self.forced)?;
+        self.loaded.lock().unwrap().insert(m.key.clone());
         Ok(m)
     }
 }
 
-fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<Arc<Tables>, StageFailure> {
-    if let Some(t) = loaded.lock().unwrap().get(&m.key) {
-        return Ok(t.clone());
-    }
-    let t = Arc::new(store.load(m)?);
-    loaded.lock().unwrap().insert(m.key.clone(), t.clone());
+/// The tables of entry `m`, read on demand; hashed first unless this run wrote or verified the
+/// entry already.
+fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<TableSet, StageFailure> {
+    let trusted = loaded.lock().unwrap().contains(&m.key);
+    let t = store.open_tables(m, trusted)?;
+    loaded.lock().unwrap().insert(m.key.clone());
     Ok(t)
 }
 
@@ -218,7 +224,7 @@ fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<Arc<Table
 /// every scene's rows with a leading `scene` column, in scene order.
 pub fn gather_tables(
     tables: &[&str],
-    parts: &[(String, Arc<Tables>)],
+    parts: &[(String, TableSet)],
 ) -> Result<Tables, StageFailure> {
     use arrow::{
         array::{ArrayRef, StringArray},
@@ -230,10 +236,18 @@ pub fn gather_tables(
         let mut batches = Vec::new();
         let mut schema = None;
         for (scene, part) in parts {
-            let b = part.get(t).ok_or_else(|| StageFailure::GatherMissing {
-                scene: scene.clone(),
-                table: t.to_string(),
-            })?;
+            let b = part
+                .get(t)
+                .ok_or_else(|| StageFailure::GatherMissing {
+                    scene: scene.clone(),
+                    table: t.to_string(),
+                })?
+                .whole()
+                .map_err(|source| StageFailure::Body {
+                    stage: format!("gather of `{t}`"),
+                    kind: "dataset".into(),
+                    source,
+                })?;
             let mut fields = vec![Arc::new(Field::new("scene", DataType::Utf8, false))];
             fields.extend(b.schema().fields().iter().cloned());
             let sch = Arc::new(Schema::new(fields));
@@ -258,25 +272,24 @@ pub fn gather_tables(
 fn execute(
     p: &Pipeline,
     i: usize,
-    inputs: &BTreeMap<String, Arc<Tables>>,
+    inputs: &BTreeMap<String, TableSet>,
+    pending: &PendingEntry,
     bar: &StageBar,
 ) -> Result<Tables, StageFailure> {
     let s = &p.stages[i];
     let (stage, kind) = (s.name.clone(), s.kind.kind().to_string());
-    let slots = inputs
-        .iter()
-        .map(|(k, v)| (k.clone(), v.as_ref()))
-        .collect();
+    let slots = inputs.iter().map(|(k, v)| (k.clone(), v)).collect();
     let adapter = bar.adapter();
     let tables = s
         .kind
-        .run(&s.params, &Inputs::new(slots), &adapter)
+        .run(&s.params, &Inputs::new(slots).with_sinks(pending), &adapter)
         .map_err(|source| StageFailure::Body {
             stage: stage.clone(),
             kind: kind.clone(),
             source,
         })?;
-    let written: BTreeSet<String> = tables.keys().cloned().collect();
+    let mut written: BTreeSet<String> = tables.keys().cloned().collect();
+    written.extend(pending.streamed());
     let declared: BTreeSet<String> = s.kind.outputs().iter().map(|t| t.to_string()).collect();
     if written != declared {
         return Err(StageFailure::Outputs {

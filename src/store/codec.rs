@@ -1,15 +1,31 @@
-//! The table format of cache entries: one Arrow batch per Parquet file (snappy), written
-//! deterministically so equal tables give equal bytes (and equal digests).
+//! The table format of cache entries: Parquet (snappy), written deterministically so equal
+//! tables give equal bytes (and equal digests), straight to the entry's file through a hashing
+//! writer (a table is never encoded into memory first), in row groups a reader can take one at
+//! a time: a streamed table one per batch the stage wrote (one image), a table written whole in
+//! groups of at most [`ROW_GROUP_BYTES`].
 
-use std::sync::Arc;
+use std::{
+    fs::File,
+    io::{BufWriter, Write},
+    ops::Range,
+    path::{Path, PathBuf},
+    sync::Arc,
+};
 
-use arrow::{compute::concat_batches, error::ArrowError, record_batch::RecordBatch};
+use arrow::{
+    array::Array, compute::concat_batches, datatypes::SchemaRef, error::ArrowError,
+    record_batch::RecordBatch,
+};
 use parquet::{
-    arrow::{arrow_reader::ParquetRecordBatchReaderBuilder, ArrowWriter},
+    arrow::{
+        arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReaderBuilder},
+        ArrowWriter, ProjectionMask,
+    },
     basic::Compression,
     errors::ParquetError,
     file::properties::WriterProperties,
 };
+use stages::stream::RowSource;
 
 /// Parquet or Arrow refused a table.
 #[derive(Debug, thiserror::Error)]
@@ -20,14 +36,22 @@ pub enum CodecError {
     Arrow(#[from] ArrowError),
 }
 
-/// Encodes one table as Parquet (snappy), deterministically.
-pub fn write_parquet(batch: &RecordBatch) -> Result<Vec<u8>, CodecError> {
+/// A table written whole is split into row groups of about this many bytes of values, so a
+/// reader of a few rows (one image) decodes little more than those rows.
+pub const ROW_GROUP_BYTES: usize = 64 << 20;
+
+/// Rows per row group of Parquet's own default (kept for tables of small rows).
+const MAX_GROUP_ROWS: usize = 1 << 20;
+
+/// The writer settings of every table: snappy, no dictionary for float columns.
+fn properties(schema: &SchemaRef) -> Result<WriterProperties, CodecError> {
     let mut props = WriterProperties::builder()
         .set_compression(Compression::SNAPPY)
+        .set_max_row_group_row_count(Some(MAX_GROUP_ROWS))
         .set_created_by(format!("panoptic-pipe {}", env!("CARGO_PKG_VERSION")));
     // Float columns (weights, positions, depths) barely repeat: a dictionary only costs time
     // (interning a million weights took ~0.4 s per train entry) and space.
-    let parquet_schema = parquet::arrow::ArrowSchemaConverter::new().convert(&batch.schema())?;
+    let parquet_schema = parquet::arrow::ArrowSchemaConverter::new().convert(schema)?;
     for col in parquet_schema.columns() {
         if matches!(
             col.physical_type(),
@@ -36,12 +60,70 @@ pub fn write_parquet(batch: &RecordBatch) -> Result<Vec<u8>, CodecError> {
             props = props.set_column_dictionary_enabled(col.path().clone(), false);
         }
     }
-    let props = props.build();
-    let mut buf = Vec::new();
-    let mut w = ArrowWriter::try_new(&mut buf, batch.schema(), Some(props))?;
-    w.write(batch)?;
-    w.close()?;
-    Ok(buf)
+    Ok(props.build())
+}
+
+/// Rows per row group for `batch`: about [`ROW_GROUP_BYTES`] of values each. Computed from the
+/// values, not from buffer capacities, so equal tables are split equally.
+fn rows_per_group(batch: &RecordBatch) -> usize {
+    let bytes: usize = batch
+        .columns()
+        .iter()
+        .map(|c| c.to_data().get_slice_memory_size().unwrap_or(0))
+        .sum();
+    let n = batch.num_rows().max(1);
+    if bytes <= ROW_GROUP_BYTES {
+        return n;
+    }
+    ((ROW_GROUP_BYTES as u128 * n as u128 / bytes as u128) as usize).clamp(1, n)
+}
+
+/// A Parquet writer of one table into `out`, a row group per [`TableEncoder::write`] call.
+pub struct TableEncoder<W: Write + Send> {
+    writer: ArrowWriter<W>,
+}
+
+impl<W: Write + Send> TableEncoder<W> {
+    pub fn new(out: W, schema: SchemaRef) -> Result<Self, CodecError> {
+        let props = properties(&schema)?;
+        Ok(Self {
+            writer: ArrowWriter::try_new(out, schema, Some(props))?,
+        })
+    }
+
+    /// Appends `batch` as one row group (or more, for batches over a million rows).
+    pub fn write(&mut self, batch: &RecordBatch) -> Result<(), CodecError> {
+        self.writer.write(batch)?;
+        self.writer.flush()?;
+        Ok(())
+    }
+
+    /// Appends `batch` in row groups of about [`ROW_GROUP_BYTES`].
+    pub fn write_whole(&mut self, batch: &RecordBatch) -> Result<(), CodecError> {
+        let step = rows_per_group(batch);
+        if step >= batch.num_rows() {
+            return self.write(batch);
+        }
+        let mut start = 0;
+        while start < batch.num_rows() {
+            let len = step.min(batch.num_rows() - start);
+            self.write(&batch.slice(start, len))?;
+            start += len;
+        }
+        Ok(())
+    }
+
+    /// Writes the footer; returns the output.
+    pub fn finish(self) -> Result<W, CodecError> {
+        Ok(self.writer.into_inner()?)
+    }
+}
+
+/// Encodes one table as Parquet, deterministically (tests, small tables).
+pub fn write_parquet(batch: &RecordBatch) -> Result<Vec<u8>, CodecError> {
+    let mut enc = TableEncoder::new(Vec::new(), batch.schema())?;
+    enc.write_whole(batch)?;
+    enc.finish()
 }
 
 /// Decodes a Parquet file into one batch.
@@ -51,4 +133,208 @@ pub fn read_parquet(bytes: Vec<u8>) -> Result<RecordBatch, CodecError> {
     let reader = builder.with_batch_size(1 << 16).build()?;
     let batches = reader.collect::<Result<Vec<_>, _>>()?;
     Ok(concat_batches(&schema, &batches)?)
+}
+
+/// A file writer that hashes (blake3) and counts what it writes.
+pub struct HashingFile {
+    file: BufWriter<File>,
+    hasher: blake3::Hasher,
+    size: u64,
+}
+
+impl HashingFile {
+    pub fn create(path: &Path) -> std::io::Result<Self> {
+        Ok(Self {
+            file: BufWriter::with_capacity(1 << 20, File::create(path)?),
+            hasher: blake3::Hasher::new(),
+            size: 0,
+        })
+    }
+
+    /// Flushes and fsyncs; returns (size, blake3 hex).
+    pub fn finish(self) -> std::io::Result<(u64, String)> {
+        let file = self.file.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        Ok((self.size, self.hasher.finalize().to_hex().to_string()))
+    }
+}
+
+impl Write for HashingFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.file.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        self.size += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()
+    }
+}
+
+/// A table stored in the cache, read a range of rows (and a set of columns) at a time: only
+/// the row groups that hold the rows are decoded.
+pub struct StoredTable {
+    path: PathBuf,
+    file: File,
+    meta: ArrowReaderMetadata,
+    /// First row of each row group, and the row count at the end.
+    starts: Vec<usize>,
+}
+
+impl StoredTable {
+    pub fn open(path: &Path) -> Result<Self, CodecError> {
+        let file = File::open(path).map_err(ParquetError::from)?;
+        let meta = ArrowReaderMetadata::load(&file, Default::default())?;
+        let mut starts = vec![0usize];
+        for g in meta.metadata().row_groups() {
+            starts.push(starts.last().unwrap() + g.num_rows() as usize);
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+            meta,
+            starts,
+        })
+    }
+
+    fn read_rows(
+        &self,
+        range: Range<usize>,
+        columns: Option<&[&str]>,
+    ) -> Result<RecordBatch, CodecError> {
+        let schema = self.meta.schema().clone();
+        let groups: Vec<usize> = (0..self.starts.len() - 1)
+            .filter(|&g| self.starts[g] < range.end && self.starts[g + 1] > range.start)
+            .collect();
+        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(
+            self.file.try_clone().map_err(ParquetError::from)?,
+            self.meta.clone(),
+        )
+        .with_row_groups(groups.clone())
+        .with_batch_size(1 << 16);
+        let out_schema = match columns {
+            Some(cols) => {
+                let idx = cols
+                    .iter()
+                    .map(|c| schema.index_of(c))
+                    .collect::<Result<Vec<_>, _>>()?;
+                let mask = ProjectionMask::roots(builder.parquet_schema(), idx.iter().copied());
+                builder = builder.with_projection(mask);
+                // The reader returns the columns in file order; give them in the order asked.
+                Arc::new(schema.project(&idx)?)
+            }
+            None => schema,
+        };
+        let batches = builder.build()?.collect::<Result<Vec<_>, _>>()?;
+        let read_schema = batches
+            .first()
+            .map_or_else(|| out_schema.clone(), |b| b.schema());
+        let all = concat_batches(&read_schema, &batches)?;
+        let first = groups.first().map_or(range.start, |&g| self.starts[g]);
+        let part = all.slice(range.start - first, range.len());
+        // Projection keeps file order: reorder to the order asked.
+        let cols = out_schema
+            .fields()
+            .iter()
+            .map(|f| {
+                part.schema()
+                    .index_of(f.name())
+                    .map(|i| part.column(i).clone())
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(RecordBatch::try_new(out_schema, cols)?)
+    }
+}
+
+impl RowSource for StoredTable {
+    fn schema(&self) -> SchemaRef {
+        self.meta.schema().clone()
+    }
+
+    fn num_rows(&self) -> usize {
+        *self.starts.last().unwrap()
+    }
+
+    fn read(&self, range: Range<usize>, columns: Option<&[&str]>) -> stages::Result<RecordBatch> {
+        self.read_rows(range.clone(), columns).map_err(|e| {
+            stages::StageError::Input(format!(
+                "reading rows {range:?} of {}: {e}",
+                self.path.display()
+            ))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::{
+        array::{BinaryArray, UInt32Array},
+        datatypes::{DataType, Field, Schema},
+    };
+
+    fn images(n: u32, bytes: usize) -> RecordBatch {
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("frame", DataType::UInt32, false),
+            Field::new("rgb", DataType::Binary, false),
+        ]));
+        let rgb: Vec<Vec<u8>> = (0..n).map(|i| vec![i as u8; bytes]).collect();
+        RecordBatch::try_new(
+            schema,
+            vec![
+                Arc::new(UInt32Array::from_iter_values(0..n)),
+                Arc::new(BinaryArray::from_iter_values(rgb)),
+            ],
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn large_tables_are_split_into_row_groups_and_read_back_in_parts() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.parquet");
+        // 40 rows of 4 MiB (and a little): row groups of 15 rows.
+        let b = images(40, 4 << 20);
+        assert_eq!(rows_per_group(&b), 15);
+        let mut enc = TableEncoder::new(HashingFile::create(&path).unwrap(), b.schema()).unwrap();
+        enc.write_whole(&b).unwrap();
+        let (size, hash) = enc.finish().unwrap().finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(size, bytes.len() as u64);
+        assert_eq!(hash, blake3::hash(&bytes).to_hex().to_string());
+        assert_eq!(
+            write_parquet(&b).unwrap(),
+            bytes,
+            "one encoding, whatever the output"
+        );
+        let t = StoredTable::open(&path).unwrap();
+        assert_eq!(t.num_rows(), 40);
+        assert_eq!(t.starts, vec![0, 15, 30, 40]);
+        // Rows across a group boundary, columns in the order asked.
+        let part = t.read(14..18, Some(&["rgb", "frame"])).unwrap();
+        assert_eq!(part.num_rows(), 4);
+        assert_eq!(part.schema().field(0).name(), "rgb");
+        let frames = part
+            .column(1)
+            .as_any()
+            .downcast_ref::<UInt32Array>()
+            .unwrap();
+        assert_eq!(frames.values().to_vec(), vec![14, 15, 16, 17]);
+        assert_eq!(t.read(0..40, None).unwrap(), b);
+        assert_eq!(t.read(40..40, None).unwrap().num_rows(), 0);
+    }
+
+    #[test]
+    fn small_tables_stay_one_row_group() {
+        let b = images(3, 10);
+        assert_eq!(rows_per_group(&b), 3);
+        let bytes = write_parquet(&b).unwrap();
+        let meta = parquet::file::serialized_reader::SerializedFileReader::new(bytes::Bytes::from(
+            bytes.clone(),
+        ))
+        .map(|r| parquet::file::reader::FileReader::metadata(&r).num_row_groups())
+        .unwrap();
+        assert_eq!(meta, 1);
+        assert_eq!(read_parquet(bytes).unwrap(), b);
+    }
 }

@@ -6,28 +6,23 @@
 use std::{
     collections::{BTreeMap, BTreeSet},
     fs::{self, File},
-    io::{Read, Write},
+    io::Write,
     path::{Path, PathBuf},
 };
 
+use arrow::record_batch::RecordBatch;
 use serde::{Deserialize, Serialize};
-use stages::Tables;
+use stages::{Table, TableSet, Tables};
 
 use super::{
-    codec::{read_parquet, write_parquet},
+    codec::{HashingFile, StoredTable, TableEncoder},
     error::StoreError,
-    files::{dir_size, fsync_dir, hash_bytes, owned_name, unix_now},
+    files::{dir_size, fsync_dir, hash_file, owned_name, unix_now},
     layout::Store,
     memo::{stamp, Verified},
+    pending::{FileInfo, PendingEntry},
 };
 use crate::{error::IoContext, fingerprint};
-
-/// Size and hash of one file of an entry.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct FileInfo {
-    pub size: u64,
-    pub blake3: String,
-}
 
 /// An input of a run: which stage fed the slot, and the digest of what it wrote.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -133,8 +128,8 @@ impl Store {
             if !full && memo.holds(key, name, &stamp) {
                 continue;
             }
-            let digest = match fs::read(&path) {
-                Ok(bytes) => hash_bytes(&bytes),
+            let digest = match hash_file(&path) {
+                Ok(d) => d,
                 Err(e) => return Entry::Corrupt(format!("cannot read {name}: {e}")),
             };
             if digest != info.blake3 {
@@ -165,40 +160,83 @@ impl Store {
         Ok(dest)
     }
 
-    /// Reads an entry's tables, verifying every byte read against the manifest.
-    pub fn load(&self, m: &Manifest) -> Result<Tables, StoreError> {
+    /// An entry's tables, read on demand. Unless `trusted` (written or verified by this process
+    /// moments ago), every file is hashed against the manifest first, in pieces.
+    pub fn open_tables(&self, m: &Manifest, trusted: bool) -> Result<TableSet, StoreError> {
         let dir = self.entry_dir(&m.key);
-        let mut tables = Tables::new();
+        let mut tables = TableSet::default();
         for (name, info) in &m.files {
             let path = dir.join(name);
-            let mut bytes = Vec::with_capacity(info.size as usize);
-            File::open(&path)
-                .and_then(|mut f| f.read_to_end(&mut bytes))
-                .io_context(|| format!("reading {}", path.display()))?;
-            if bytes.len() as u64 != info.size || hash_bytes(&bytes) != info.blake3 {
-                return Err(StoreError::Corrupt(format!(
-                    "{} changed since it was verified (size or blake3 mismatch)",
-                    path.display()
-                )));
+            if !trusted {
+                let size = fs::metadata(&path)
+                    .io_context(|| format!("reading {}", path.display()))?
+                    .len();
+                let digest =
+                    hash_file(&path).io_context(|| format!("reading {}", path.display()))?;
+                if size != info.size || digest != info.blake3 {
+                    return Err(StoreError::Corrupt(format!(
+                        "{} changed since it was verified (size or blake3 mismatch)",
+                        path.display()
+                    )));
+                }
             }
-            let table = name.strip_suffix(".parquet").unwrap_or(name).to_string();
-            let batch = read_parquet(bytes).map_err(|source| StoreError::Codec {
+            let table = name.strip_suffix(".parquet").unwrap_or(name);
+            let stored = StoredTable::open(&path).map_err(|source| StoreError::Codec {
                 what: format!("decoding {}", path.display()),
                 source,
             })?;
-            tables.insert(table, batch);
+            tables.insert(Table::stored(table, Box::new(stored)));
         }
         Ok(tables)
     }
 
+    /// Reads an entry's tables whole, verifying every file against the manifest.
+    pub fn load(&self, m: &Manifest) -> Result<Tables, StoreError> {
+        self.open_tables(m, false)?
+            .whole_tables()
+            .map_err(|e| StoreError::Corrupt(e.to_string()))
+    }
+
+    /// A new entry for `key` being written under `tmp/`: its streamed tables go there as the
+    /// stage produces them (see [`PendingEntry`]).
+    pub fn begin(&self, key: &str) -> Result<PendingEntry, StoreError> {
+        PendingEntry::create(self.dir("tmp").join(owned_name(key)))
+    }
+
     /// Writes `tables` as a new entry and publishes it atomically. If another process
     /// published the same key meanwhile, its (verified) entry wins and ours is discarded.
-    pub fn publish(&self, mut manifest: Manifest, tables: &Tables) -> Result<Manifest, StoreError> {
+    pub fn publish(&self, manifest: Manifest, tables: &Tables) -> Result<Manifest, StoreError> {
+        let pending = self.begin(&manifest.key)?;
+        self.publish_pending(pending, manifest, tables, false)
+    }
+
+    /// Publishes `pending` (its streamed tables) with `tables` as the entry of the manifest's
+    /// key; `replacing` as [`Store::publish_replacing`]. The temporary directory is removed
+    /// whatever happens.
+    pub fn publish_pending(
+        &self,
+        pending: PendingEntry,
+        mut manifest: Manifest,
+        tables: &Tables,
+        replacing: bool,
+    ) -> Result<Manifest, StoreError> {
         let key = manifest.key.clone();
-        let tmp = self.dir("tmp").join(owned_name(&key));
-        let result = self
-            .write_entry(&tmp, &mut manifest, tables)
-            .and_then(|()| self.rename_into_objects(&tmp, &key, &manifest));
+        let tmp = pending.dir().to_path_buf();
+        let result = pending
+            .finish()
+            .and_then(|streamed| self.write_entry(&tmp, &mut manifest, tables, streamed))
+            .and_then(|()| {
+                if replacing {
+                    let same = match self.check(&key, false) {
+                        Entry::Valid(old) => old.output_digest == manifest.output_digest,
+                        Entry::Missing | Entry::Corrupt(_) => false,
+                    };
+                    if !same && self.entry_dir(&key).exists() {
+                        self.quarantine(&key)?;
+                    }
+                }
+                self.rename_into_objects(&tmp, &key, &manifest)
+            });
         if result.is_err() {
             let _ = fs::remove_dir_all(&tmp);
         }
@@ -212,55 +250,40 @@ impl Store {
     /// waits on the lock.
     pub fn publish_replacing(
         &self,
-        mut manifest: Manifest,
+        manifest: Manifest,
         tables: &Tables,
     ) -> Result<Manifest, StoreError> {
-        let key = manifest.key.clone();
-        let tmp = self.dir("tmp").join(owned_name(&key));
-        let result = self
-            .write_entry(&tmp, &mut manifest, tables)
-            .and_then(|()| {
-                let same = match self.check(&key, false) {
-                    Entry::Valid(old) => old.output_digest == manifest.output_digest,
-                    Entry::Missing => false,
-                    Entry::Corrupt(_) => false,
-                };
-                if !same && self.entry_dir(&key).exists() {
-                    self.quarantine(&key)?;
-                }
-                self.rename_into_objects(&tmp, &key, &manifest)
-            });
-        if result.is_err() {
-            let _ = fs::remove_dir_all(&tmp);
-        }
-        result
+        let pending = self.begin(&manifest.key)?;
+        self.publish_pending(pending, manifest, tables, true)
     }
 
     /// Writes the tables and the manifest (completed with the files' sizes, hashes and output
-    /// digest) into directory `tmp`, fsynced.
+    /// digest, the `streamed` tables' included) into directory `tmp`, fsynced.
     fn write_entry(
         &self,
         tmp: &Path,
         manifest: &mut Manifest,
         tables: &Tables,
+        streamed: BTreeMap<String, FileInfo>,
     ) -> Result<(), StoreError> {
         fs::create_dir_all(tmp).io_context(|| format!("creating {}", tmp.display()))?;
         manifest.files.clear();
         manifest.schemas.clear();
+        for (name, info) in streamed {
+            if tables.contains_key(&name) {
+                return Err(StoreError::Corrupt(format!(
+                    "table `{name}` was both streamed and returned"
+                )));
+            }
+            manifest.files.insert(format!("{name}.parquet"), info);
+            manifest
+                .schemas
+                .insert(name.clone(), format!("data_schema/{name}.json"));
+        }
         for (name, batch) in tables {
             let file = format!("{name}.parquet");
-            let bytes = write_parquet(batch).map_err(|source| StoreError::Codec {
-                what: format!("encoding table {name}"),
-                source,
-            })?;
-            write_synced(&tmp.join(&file), &bytes)?;
-            manifest.files.insert(
-                file,
-                FileInfo {
-                    size: bytes.len() as u64,
-                    blake3: hash_bytes(&bytes),
-                },
-            );
+            let info = write_table(&tmp.join(&file), batch)?;
+            manifest.files.insert(file, info);
             manifest
                 .schemas
                 .insert(name.clone(), format!("data_schema/{name}.json"));
@@ -345,6 +368,23 @@ impl Store {
         }
         Ok((removed, bytes))
     }
+}
+
+/// Writes `batch` as the Parquet file `path`, synced to disk; its size and blake3.
+fn write_table(path: &Path, batch: &RecordBatch) -> Result<FileInfo, StoreError> {
+    let file = HashingFile::create(path).io_context(|| format!("creating {}", path.display()))?;
+    let codec = |source| StoreError::Codec {
+        what: format!("encoding {}", path.display()),
+        source,
+    };
+    let mut enc = TableEncoder::new(file, batch.schema()).map_err(codec)?;
+    enc.write_whole(batch).map_err(codec)?;
+    let (size, blake3) = enc
+        .finish()
+        .map_err(codec)?
+        .finish()
+        .io_context(|| format!("writing {} (disk full?)", path.display()))?;
+    Ok(FileInfo { size, blake3 })
 }
 
 /// Creates `path` with `bytes`, synced to disk.

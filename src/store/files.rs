@@ -71,6 +71,13 @@ pub(super) fn is_leftover(path: &Path) -> bool {
         .is_some_and(|age| age.as_secs_f64() > STALE_LOCK_S)
 }
 
+/// The blake3 of the file at `path`, read in pieces (entry files may be gigabytes).
+pub(super) fn hash_file(path: &Path) -> std::io::Result<String> {
+    let mut h = blake3::Hasher::new();
+    h.update_reader(File::open(path)?)?;
+    Ok(h.finalize().to_hex().to_string())
+}
+
 pub(super) fn hash_bytes(bytes: &[u8]) -> String {
     let mut h = blake3::Hasher::new();
     if bytes.len() > 1 << 20 {

@@ -23,8 +23,9 @@
 //! host and the pid is gone, or no heartbeat for [`STALE_LOCK_S`]) is broken by the next run.
 //!
 //! The parts: [`Store`] and its directories (`layout`), entries (`entry`: publish, verify,
-//! repair, gc), the Parquet codec (`codec`), locks (`locks`), run records (`records`), hash
-//! memos (`memo`), file helpers (`files`) and [`StoreError`].
+//! repair, gc; `pending`: an entry being written, streamed tables included), the Parquet codec
+//! (`codec`: written through a hashing writer, read a row group at a time), locks (`locks`),
+//! run records (`records`), hash memos (`memo`), file helpers (`files`) and [`StoreError`].
 
 mod codec;
 mod entry;
@@ -33,12 +34,14 @@ mod files;
 mod layout;
 mod locks;
 mod memo;
+mod pending;
 mod records;
 
-pub use codec::{read_parquet, write_parquet, CodecError};
-pub use entry::{Entry, FileInfo, InputInfo, Manifest};
+pub use codec::{read_parquet, write_parquet, CodecError, StoredTable};
+pub use entry::{Entry, InputInfo, Manifest};
 pub use error::StoreError;
 pub use files::{host_name, unix_now, write_atomic, STALE_LOCK_S};
 pub use layout::Store;
 pub use locks::{KeyLock, RunLock};
+pub use pending::{FileInfo, PendingEntry};
 pub use records::RunRecord;

@@ -3,13 +3,11 @@
 //!
 //! `cargo run -p stages --example first_hit -- <out dir>` (default `target-pictures`)
 
-use std::collections::BTreeMap;
-
 use stages::{
     geometry::{cameras_to_table, demo, primitives_to_table, CameraRow},
     intervals::IntersectParams,
     kinds::intersect::Intersect,
-    Inputs, NoProgress, Tables, TypedStage,
+    NoProgress, Tables, TypedStage,
 };
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -29,7 +27,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ("cameras".to_string(), cameras_to_table(&rows)?),
             ("primitives".to_string(), primitives_to_table(&prims)?),
         ]);
-        let inputs = Inputs::new(BTreeMap::from([("scene".to_string(), &scene)]));
+        let mem = stages::MemoryInputs::new([("scene", scene)]);
+        let inputs = mem.inputs();
         let p = IntersectParams {
             cameras: vec![0],
             ..Default::default()
@@ -41,7 +40,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             prims.len(),
             start.elapsed()
         );
-        for f in Intersect.export(&p, &tables, &out.join(name))? {
+        for f in Intersect.export(&p, &tables.into(), &out.join(name))? {
             println!("{}", f.display());
         }
     }

@@ -5,14 +5,14 @@
 //! without evaluating a network. Output: `ray_intervals` (see `data_schema/ray_intervals.json`).
 
 use arrow::{
-    datatypes::{Float32Type, UInt32Type, UInt8Type},
+    datatypes::{Float32Type, Float64Type, UInt32Type, UInt8Type},
     record_batch::RecordBatch,
 };
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::{
-    geometry::{Bvh, Camera, CameraRow, Hit, Primitive},
+    geometry::{Bvh, Camera, CameraRow, Hit, Primitive, Ray},
     labels, tables, Result, StageError,
 };
 
@@ -41,7 +41,51 @@ impl Default for IntersectParams {
     }
 }
 
-/// The per-pixel plan of one image, before it becomes a table row.
+/// The kept hits of one ray (the first `k`) and its sky interval `[t0, t1]`, in f64: the one
+/// rule behind every plan, whether written to the table or traced again during training.
+fn keep<'h>(hits: &'h [Hit], p: &IntersectParams) -> (&'h [Hit], f64, f64) {
+    let kept = &hits[..hits.len().min(p.k as usize)];
+    let t_far = kept.iter().fold(0f64, |m, h| m.max(h.t_out));
+    let sky = if !kept.is_empty() && kept.len() < p.k as usize {
+        p.sky_interval
+    } else {
+        0.0
+    };
+    (kept, t_far, t_far + sky)
+}
+
+/// The plan of one ray as the sampler reads it (f32, `t_out >= t_in`, sky `t1 >= t0`), traced
+/// into reusable buffers: training re-traces the rays of each batch instead of holding every
+/// ray's intervals.
+#[derive(Debug, Default, Clone)]
+pub struct RayPlan {
+    hits: Vec<Hit>,
+    pub t_in: Vec<f32>,
+    pub t_out: Vec<f32>,
+    pub prim: Vec<u32>,
+    pub sky: [f32; 2],
+}
+
+impl RayPlan {
+    /// Traces `ray` through `bvh`, keeping what the `intersect` stage keeps for it.
+    pub fn trace(&mut self, prims: &[Primitive], bvh: &Bvh, ray: &Ray, p: &IntersectParams) {
+        bvh.intersect_all(prims, ray, 0.0, p.far, &mut self.hits);
+        let (kept, t0, t1) = keep(&self.hits, p);
+        self.t_in.clear();
+        self.t_out.clear();
+        self.prim.clear();
+        for h in kept {
+            let (a, b) = (h.t_in as f32, h.t_out as f32);
+            self.t_in.push(a);
+            self.t_out.push(b.max(a));
+            self.prim.push(h.prim);
+        }
+        let (s0, s1) = (t0 as f32, t1 as f32);
+        self.sky = [s0, s1.max(s0)];
+    }
+}
+
+/// The per-pixel plan of one image: a `ray_intervals` row.
 #[derive(Debug, Default, Clone, PartialEq)]
 pub struct ImagePlan {
     pub hits: Vec<u8>,
@@ -68,22 +112,15 @@ impl ImagePlan {
 
     /// Adds one pixel from its sorted hits (all of them within `[0, far]`).
     fn push_pixel(&mut self, prims: &[Primitive], hits: &[Hit], p: &IntersectParams) {
-        let kept = &hits[..hits.len().min(p.k as usize)];
+        let (kept, t0, t1) = keep(hits, p);
         self.hits.push(kept.len() as u8);
-        let mut t_far = 0f64;
         for h in kept {
             self.t_in.push(h.t_in as f32);
             self.t_out.push(h.t_out as f32);
             self.prim.push(h.prim);
-            t_far = t_far.max(h.t_out);
         }
-        let sky = if !kept.is_empty() && kept.len() < p.k as usize {
-            p.sky_interval
-        } else {
-            0.0
-        };
-        self.sky_t0.push(t_far as f32);
-        self.sky_t1.push((t_far + sky) as f32);
+        self.sky_t0.push(t0 as f32);
+        self.sky_t1.push(t1 as f32);
         match kept.first() {
             Some(h) => {
                 let pr = &prims[h.prim as usize];
@@ -95,6 +132,64 @@ impl ImagePlan {
                 self.first_instance.push(0);
             }
         }
+    }
+
+    /// Pixels of the image.
+    pub fn len(&self) -> usize {
+        self.hits.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.hits.is_empty()
+    }
+
+    /// Row `r` of a `ray_intervals` batch (the per-pixel columns the sampler reads; the
+    /// first-hit columns are left empty), every length checked against `pixels` and the ids
+    /// against `prim_count`.
+    pub fn from_row(
+        batch: &RecordBatch,
+        r: usize,
+        pixels: usize,
+        prim_count: usize,
+    ) -> Result<ImagePlan> {
+        const T: &str = "ray_intervals";
+        let hits = tables::get_list::<UInt8Type>(batch, T, "hits")?.row(r);
+        let (sky0, sky1) = (
+            tables::get_list::<Float32Type>(batch, T, "sky_t0")?.row(r),
+            tables::get_list::<Float32Type>(batch, T, "sky_t1")?.row(r),
+        );
+        if hits.len() != pixels || sky0.len() != pixels || sky1.len() != pixels {
+            return Err(StageError::Input(format!(
+                "{T} row {r}: per-pixel arrays do not have {pixels} entries"
+            )));
+        }
+        let total: usize = hits.iter().map(|&h| h as usize).sum();
+        let (ti, to, pr) = (
+            tables::get_list::<Float32Type>(batch, T, "t_in")?.row(r),
+            tables::get_list::<Float32Type>(batch, T, "t_out")?.row(r),
+            tables::get_list::<UInt32Type>(batch, T, "prim")?.row(r),
+        );
+        if ti.len() != total || to.len() != total || pr.len() != total {
+            return Err(StageError::Input(format!(
+                "{T} row {r}: {} intervals listed but hits sum to {total}",
+                ti.len()
+            )));
+        }
+        if let Some(&bad) = pr.iter().find(|&&p| p as usize >= prim_count) {
+            return Err(StageError::Input(format!(
+                "{T} row {r}: primitive id {bad} is not in `primitives` ({prim_count} rows)"
+            )));
+        }
+        Ok(ImagePlan {
+            hits: hits.to_vec(),
+            t_in: ti.to_vec(),
+            t_out: to.to_vec(),
+            prim: pr.to_vec(),
+            sky_t0: sky0.to_vec(),
+            sky_t1: sky1.to_vec(),
+            first_label: Vec::new(),
+            first_instance: Vec::new(),
+        })
     }
 }
 
@@ -119,32 +214,30 @@ pub fn plan_image(prims: &[Primitive], bvh: &Bvh, cam: &Camera, p: &IntersectPar
     plan
 }
 
-/// Builds the `ray_intervals` table from `(camera row, plan)` pairs.
-pub fn plans_to_table(k: u32, images: &[(&CameraRow, ImagePlan)]) -> Result<RecordBatch> {
-    let col = |f: fn(&ImagePlan) -> Vec<f32>| {
-        tables::list::<Float32Type>(images.iter().map(|(_, p)| f(p)))
-    };
+/// The `ray_intervals` row of one image planned with `p`.
+pub fn plan_row(row: &CameraRow, plan: ImagePlan, p: &IntersectParams) -> Result<RecordBatch> {
     tables::build(
         "ray_intervals",
         vec![
-            tables::prim::<UInt32Type>(images.iter().map(|(r, _)| r.frame)),
-            tables::prim::<UInt8Type>(images.iter().map(|(r, _)| r.camera)),
-            tables::prim::<UInt32Type>(images.iter().map(|(r, _)| r.cam.width)),
-            tables::prim::<UInt32Type>(images.iter().map(|(r, _)| r.cam.height)),
-            tables::prim::<UInt32Type>(images.iter().map(|_| k)),
-            tables::list::<UInt8Type>(images.iter().map(|(_, p)| p.hits.clone())),
-            col(|p| p.t_in.clone()),
-            col(|p| p.t_out.clone()),
-            tables::list::<UInt32Type>(images.iter().map(|(_, p)| p.prim.clone())),
-            col(|p| p.sky_t0.clone()),
-            col(|p| p.sky_t1.clone()),
-            tables::list::<UInt8Type>(images.iter().map(|(_, p)| p.first_label.clone())),
-            tables::list::<UInt32Type>(images.iter().map(|(_, p)| p.first_instance.clone())),
+            tables::prim::<UInt32Type>([row.frame]),
+            tables::prim::<UInt8Type>([row.camera]),
+            tables::prim::<UInt32Type>([row.cam.width]),
+            tables::prim::<UInt32Type>([row.cam.height]),
+            tables::prim::<UInt32Type>([p.k]),
+            tables::prim::<Float64Type>([p.far]),
+            tables::prim::<Float64Type>([p.sky_interval]),
+            tables::list::<UInt8Type>([plan.hits]),
+            tables::list::<Float32Type>([plan.t_in]),
+            tables::list::<Float32Type>([plan.t_out]),
+            tables::list::<UInt32Type>([plan.prim]),
+            tables::list::<Float32Type>([plan.sky_t0]),
+            tables::list::<Float32Type>([plan.sky_t1]),
+            tables::list::<UInt8Type>([plan.first_label]),
+            tables::list::<UInt32Type>([plan.first_instance]),
         ],
     )
 }
 
-/// Stage kind `intersect`.
 /// A "first primitive hit" picture of one image.
 pub struct FirstHitImage {
     pub frame: u32,

@@ -14,6 +14,7 @@
 //! - [`tables`] and [`schema`] (typed rows and Arrow schemas from `data_schema/`), [`labels`]
 //!   (KITTI-360 label ids and colours), [`pngio`], [`rng`].
 
+pub mod error;
 pub mod geometry;
 pub mod intervals;
 pub mod kinds;
@@ -27,9 +28,10 @@ pub mod sampling;
 pub mod scene;
 pub mod schema;
 pub mod stage;
+pub mod stream;
 pub mod tables;
 
 pub use stage::{
-    InputSlot, Inputs, MethodInfo, MetricInfo, NoProgress, Progress, Result, ScoreSpec, Stage,
-    StageError, Tables, TypedStage,
+    InputSlot, Inputs, MemoryInputs, MethodInfo, MetricInfo, NoProgress, Progress, Result,
+    ScoreSpec, Stage, StageError, Table, TableSet, TableWriter, Tables, TypedStage,
 };

@@ -9,26 +9,9 @@ use arrow::record_batch::RecordBatch;
 use serde::{de::DeserializeOwned, Serialize};
 use serde_json::Value;
 
-/// Named tables: what a stage writes, and what an upstream stage hands to a downstream one.
-pub type Tables = BTreeMap<String, RecordBatch>;
-
-/// Why a stage could not produce its outputs, as the runner classifies it: the library's own
-/// errors (`ModelError`, `TrainError`, `GeometryError`, `MetricError`, ...) convert into one of
-/// these at the kind boundary, keeping their message.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum StageError {
-    /// The parameters are invalid (the runner reports this as a configuration error, exit 2).
-    #[error("invalid params: {0}")]
-    Params(String),
-    /// An input table or file is missing or malformed.
-    #[error("bad input: {0}")]
-    Input(String),
-    /// The computation itself failed (e.g. training diverged).
-    #[error("{0}")]
-    Failed(String),
-}
-
-pub type Result<T, E = StageError> = std::result::Result<T, E>;
+pub use crate::error::{Result, StageError};
+use crate::stream::Sinks;
+pub use crate::stream::{Table, TableSet, TableWriter, Tables};
 
 /// One named input slot of a stage kind (e.g. `scene` for the rays stage).
 #[derive(Debug, Clone, Copy)]
@@ -52,14 +35,24 @@ impl Progress for NoProgress {
     fn update(&self, _: u64, _: u64, _: &str) {}
 }
 
-/// The inputs of one stage run: slot name -> the upstream stage's tables.
+/// The inputs of one stage run: slot name -> the upstream stage's tables; and, under the
+/// runner, where streamed output tables go ([`Inputs::writer`]).
 pub struct Inputs<'a> {
-    slots: BTreeMap<String, &'a Tables>,
+    slots: BTreeMap<String, &'a TableSet>,
+    sinks: Option<&'a dyn Sinks>,
 }
 
 impl<'a> Inputs<'a> {
-    pub fn new(slots: BTreeMap<String, &'a Tables>) -> Self {
-        Self { slots }
+    pub fn new(slots: BTreeMap<String, &'a TableSet>) -> Self {
+        Self { slots, sinks: None }
+    }
+
+    /// The same inputs, with output tables written through `sinks` as they are produced.
+    pub fn with_sinks(self, sinks: &'a dyn Sinks) -> Self {
+        Self {
+            sinks: Some(sinks),
+            ..self
+        }
     }
 
     /// Whether the optional slot `slot` is connected.
@@ -67,8 +60,8 @@ impl<'a> Inputs<'a> {
         self.slots.contains_key(slot)
     }
 
-    /// Table `table` of the stage connected to `slot`.
-    pub fn table(&self, slot: &str, table: &str) -> Result<&'a RecordBatch> {
+    /// Table `table` of the stage connected to `slot`, as a handle that reads rows on demand.
+    pub fn stored(&self, slot: &str, table: &str) -> Result<&'a Table> {
         let tables = self
             .slots
             .get(slot)
@@ -76,9 +69,15 @@ impl<'a> Inputs<'a> {
         tables.get(table).ok_or_else(|| {
             StageError::Input(format!(
                 "input `{slot}` has no table `{table}` (it has: {})",
-                tables.keys().cloned().collect::<Vec<_>>().join(", ")
+                tables.names().collect::<Vec<_>>().join(", ")
             ))
         })
+    }
+
+    /// Table `table` of the stage connected to `slot`, whole in memory (for small tables, or
+    /// tables a stage needs whole; [`Inputs::stored`] reads parts).
+    pub fn table(&self, slot: &str, table: &str) -> Result<&'a RecordBatch> {
+        self.stored(slot, table)?.whole()
     }
 
     /// Like [`Inputs::table`] but `None` when the slot is not connected.
@@ -88,6 +87,42 @@ impl<'a> Inputs<'a> {
         } else {
             Ok(None)
         }
+    }
+
+    /// Like [`Inputs::stored`] but `None` when the slot is not connected.
+    pub fn optional_stored(&self, slot: &str, table: &str) -> Result<Option<&'a Table>> {
+        if self.has(slot) {
+            self.stored(slot, table).map(Some)
+        } else {
+            Ok(None)
+        }
+    }
+
+    /// A writer for output table `table`, one batch at a time: under the runner each batch is
+    /// stored as it comes, so a large table is never held whole.
+    pub fn writer(&self, table: &str) -> Result<TableWriter> {
+        TableWriter::new(table, self.sinks)
+    }
+}
+
+/// Input tables held in memory, by slot: for running a stage without the runner (tests, tools).
+#[derive(Default)]
+pub struct MemoryInputs {
+    slots: BTreeMap<String, TableSet>,
+}
+
+impl MemoryInputs {
+    pub fn new<S: Into<String>>(slots: impl IntoIterator<Item = (S, Tables)>) -> Self {
+        Self {
+            slots: slots
+                .into_iter()
+                .map(|(s, t)| (s.into(), TableSet::from(t)))
+                .collect(),
+        }
+    }
+
+    pub fn inputs(&self) -> Inputs<'_> {
+        Inputs::new(self.slots.iter().map(|(k, v)| (k.clone(), v)).collect())
     }
 }
 
@@ -107,7 +142,7 @@ pub trait Stage: Send + Sync {
     fn canonical_params(&self, params: &Value) -> Result<Value>;
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
     /// Writes the stage's human-facing files (PNGs, reports) into `dir`; returns what it wrote.
-    fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>>;
+    fn export(&self, params: &Value, tables: &TableSet, dir: &Path) -> Result<Vec<PathBuf>>;
     /// Files and directories outside the cache this run will read (e.g. a KITTI-360 root); the
     /// runner hashes their content into the stage's key, so editing one re-runs the stage.
     fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>>;
@@ -145,7 +180,7 @@ pub trait TypedStage: Send + Sync {
     fn export(
         &self,
         _params: &Self::Params,
-        _tables: &Tables,
+        _tables: &TableSet,
         _dir: &Path,
     ) -> Result<Vec<PathBuf>> {
         Ok(Vec::new())
@@ -188,7 +223,7 @@ impl<T: TypedStage> Stage for T {
         let p: T::Params = typed_params(params)?;
         TypedStage::run(self, &p, inputs, progress)
     }
-    fn export(&self, params: &Value, tables: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+    fn export(&self, params: &Value, tables: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
         let p: T::Params = typed_params(params)?;
         TypedStage::export(self, &p, tables, dir)
     }

@@ -12,7 +12,9 @@ use arrow::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::{tables, InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::{
+    tables, InputSlot, Inputs, Progress, Result, StageError, TableSet, Tables, TypedStage,
+};
 
 /// The scene name of the mean rows.
 pub const MEAN: &str = "mean";
@@ -196,10 +198,8 @@ impl TypedStage for Aggregate {
         Ok(Tables::from([("dataset_metrics".to_string(), out)]))
     }
 
-    fn export(&self, p: &AggregateParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        let table = t
-            .get("dataset_metrics")
-            .ok_or_else(|| StageError::Input("no table `dataset_metrics`".into()))?;
+    fn export(&self, p: &AggregateParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let table = t.table("dataset_metrics")?;
         let s = read_summary(table, "dataset_metrics", true)?;
         let mut methods: Vec<String> = s.keys.iter().map(|(m, _)| m.clone()).collect();
         methods.dedup();

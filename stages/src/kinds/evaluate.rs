@@ -25,7 +25,8 @@ use crate::{
         multiview_consistency, ConfusionMatrix, Consistency, DepthAccumulator, LabelledView,
         PanopticAccumulator, PanopticConfig, PanopticResult, Pinhole, PqSummary,
     },
-    tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Tables, TypedStage,
+    tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Table, TableSet, Tables,
+    TypedStage,
 };
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -243,13 +244,36 @@ struct MethodSums {
     mc: Option<Consistency>,
 }
 
-/// The per-image tables evaluation reads, indexed by (frame, camera).
+/// The per-image tables evaluation reads, indexed by (frame, camera). The ground truth and
+/// LiDAR exist for the evaluation images only and are read whole; pseudo labels and label maps
+/// exist for every image and are read one evaluated image at a time.
 struct Sources<'a> {
     gt_sem: HashMap<(u32, u8), Image<'a>>,
     gt_inst: HashMap<(u32, u8), Image<'a>>,
-    pseudo: HashMap<(u32, u8), Image<'a>>,
     lidar: HashMap<(u32, u8), Image<'a>>,
-    maps: HashMap<(u32, u8), Image<'a>>,
+    pseudo: RowIndex<'a>,
+    maps: RowIndex<'a>,
+}
+
+/// The rows of a per-image table that is read an image at a time.
+struct RowIndex<'a> {
+    table: &'a Table,
+    rows: HashMap<(u32, u8), usize>,
+}
+
+impl<'a> RowIndex<'a> {
+    fn new(table: &'a Table) -> Result<Self> {
+        let keys = table.columns(&["frame", "camera"])?;
+        Ok(Self {
+            rows: tables::frame_camera_index(&keys, table.name())?,
+            table,
+        })
+    }
+
+    /// The row of image `key` (a one-row batch), if the table has one.
+    fn get(&self, key: (u32, u8)) -> Result<Option<RecordBatch>> {
+        self.rows.get(&key).map(|&r| self.table.row(r)).transpose()
+    }
 }
 
 impl<'a> Sources<'a> {
@@ -258,9 +282,9 @@ impl<'a> Sources<'a> {
         Ok(Self {
             gt_sem: index("scene", "gt_semantic")?,
             gt_inst: index("scene", "gt_instance")?,
-            pseudo: index("scene", "pseudo_labels")?,
             lidar: index("scene", "lidar_depth")?,
-            maps: index("render", "label_maps")?,
+            pseudo: RowIndex::new(inputs.stored("scene", "pseudo_labels")?)?,
+            maps: RowIndex::new(inputs.stored("render", "label_maps")?)?,
         })
     }
 
@@ -339,7 +363,9 @@ impl Evaluation {
             .gt_inst
             .get(&key)
             .ok_or_else(|| missing("gt_instance"))?;
-        let m = src.maps.get(&key).ok_or_else(|| missing("label_maps"))?;
+        let m_row = src.maps.get(key)?.ok_or_else(|| missing("label_maps"))?;
+        let m_index = index_images(&m_row, "label_maps")?;
+        let m = &m_index[&key];
         if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
             || (m.width, m.height) != (g.width, g.height)
         {
@@ -386,8 +412,9 @@ impl Evaluation {
         self.labels_of
             .insert(("first_primitive", c.frame, c.camera), fp_sem);
 
-        if let Some(ps) = src.pseudo.get(&key) {
-            let ps = map_u8(ps, "pseudo_labels", "labels")?;
+        if let Some(ps_row) = src.pseudo.get(key)? {
+            let ps_index = index_images(&ps_row, "pseudo_labels")?;
+            let ps = map_u8(&ps_index[&key], "pseudo_labels", "labels")?;
             self.sums
                 .get_mut("pseudo_labels")
                 .unwrap()
@@ -575,16 +602,16 @@ impl TypedStage for Evaluate {
         ]))
     }
 
-    fn export(&self, _: &EvaluateParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        let mut json = metrics_json(t)?;
-        if t["eval_gt"].num_rows() == 0 {
+    fn export(&self, _: &EvaluateParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let mut json = metrics_json(&t.whole_tables()?)?;
+        if t.table("eval_gt")?.num_rows() == 0 {
             json["not_evaluated"] = serde_json::json!(scores::NOT_EVALUATED);
         }
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
         let mut files = vec![path];
-        let gt = &t["eval_gt"];
+        let gt = t.table("eval_gt")?;
         let seq = tables::get_strings(gt, "eval_gt", "sequence")?;
         let frames = tables::get_prim::<UInt32Type>(gt, "eval_gt", "frame")?;
         let cams = tables::get_prim::<UInt8Type>(gt, "eval_gt", "camera")?;

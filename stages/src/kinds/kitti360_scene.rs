@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use crate::scene::kitti360::{input_files, load, Kitti360Params};
 use crate::scene::preview;
-use crate::stage::{InputSlot, Inputs, Progress, Result, Tables, TypedStage};
+use crate::stage::{InputSlot, Inputs, Progress, Result, TableSet, Tables, TypedStage};
 
 /// The KITTI-360 loader kind.
 pub struct Kitti360Scene;
@@ -43,7 +43,7 @@ impl TypedStage for Kitti360Scene {
         input_files(p)
     }
 
-    fn export(&self, _: &Kitti360Params, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        preview::write(t, &dir.join("previews"))
+    fn export(&self, _: &Kitti360Params, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        preview::write(&t.whole_tables()?, &dir.join("previews"))
     }
 }

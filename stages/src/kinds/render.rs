@@ -4,21 +4,25 @@
 //! depth, colour and confidence. Rays that cross no primitive are sky without any network
 //! evaluation; compositing stops once transmittance is negligible.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use arrow::array::Array;
-use arrow::datatypes::{Float32Type, UInt16Type, UInt32Type, UInt8Type};
+use arrow::datatypes::{Float32Type, Float64Type, UInt16Type, UInt32Type, UInt8Type};
 use arrow::record_batch::RecordBatch;
 use serde::{Deserialize, Serialize};
 
 use glam::DQuat;
 
-use crate::geometry::{self, Camera, DAffine3, DVec3};
-use crate::model::maps::{render_images, ImageMaps, Renderer};
+use crate::geometry::{self, Camera, CameraRow, DAffine3, DVec3};
+use crate::intervals::{plan_image, ImagePlan, IntersectParams};
+use crate::model::maps::{render_image, ImageMaps, Renderer, SkyColour};
 use crate::model::{weights, EngineChoice};
 use crate::report::panoptic_colors;
-use crate::sampling::{ImageInfo, RaySet, SamplingParams};
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::sampling::{PlannedImage, PrimInfo, SamplingParams};
+use crate::stage::{
+    InputSlot, Inputs, Progress, Result, StageError, Table, TableSet, Tables, TypedStage,
+};
 use crate::{pngio, tables};
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -84,15 +88,14 @@ fn sequence(inputs: &Inputs) -> Result<String> {
 }
 
 /// The cameras of the novel views: each a scene camera moved in its own frame.
-fn novel_cameras(set: &RaySet, views: &[NovelView]) -> Result<Vec<(u32, u8, Camera)>> {
+fn novel_cameras(cams: &[CameraRow], views: &[NovelView]) -> Result<Vec<(u32, u8, Camera)>> {
     views
         .iter()
         .enumerate()
         .map(|(k, v)| {
-            let from = set
-                .images
+            let from = cams
                 .iter()
-                .find(|im| (im.frame, im.camera) == (v.frame, v.camera))
+                .find(|c| (c.frame, c.camera) == (v.frame, v.camera))
                 .ok_or_else(|| {
                     StageError::Params(format!(
                         "`novel_views[{k}]`: the scene has no image of frame {} camera {}",
@@ -109,41 +112,47 @@ fn novel_cameras(set: &RaySet, views: &[NovelView]) -> Result<Vec<(u32, u8, Came
         .collect()
 }
 
-/// The `label_maps` table of rendered images.
-fn label_maps_table(sequence: &str, maps: Vec<ImageMaps>) -> Result<RecordBatch> {
-    let rows = maps.len();
-    let (frame, camera, width, height): (Vec<u32>, Vec<u8>, Vec<u32>, Vec<u32>) = (
-        maps.iter().map(|m| m.frame).collect(),
-        maps.iter().map(|m| m.camera).collect(),
-        maps.iter().map(|m| m.width).collect(),
-        maps.iter().map(|m| m.height).collect(),
-    );
-    let (mut semantic, mut fixed, mut instance) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut depth, mut confidence, mut rgb) = (Vec::new(), Vec::new(), Vec::new());
-    for m in maps {
-        semantic.push(m.semantic);
-        fixed.push(m.fixed);
-        instance.push(m.instance);
-        depth.push(m.depth);
-        confidence.push(m.confidence);
-        rgb.push(m.rgb);
-    }
+/// The `label_maps` row of one rendered image.
+fn label_maps_row(sequence: &str, m: ImageMaps) -> Result<RecordBatch> {
     tables::build(
         "label_maps",
         vec![
-            tables::strings(vec![sequence; rows]),
-            tables::prim::<UInt32Type>(frame),
-            tables::prim::<UInt8Type>(camera),
-            tables::prim::<UInt32Type>(width),
-            tables::prim::<UInt32Type>(height),
-            tables::list::<UInt8Type>(semantic),
-            tables::list::<UInt8Type>(fixed),
-            tables::list::<UInt16Type>(instance),
-            tables::list::<Float32Type>(depth),
-            tables::list::<Float32Type>(confidence),
-            tables::binary(&rgb),
+            tables::strings([sequence]),
+            tables::prim::<UInt32Type>([m.frame]),
+            tables::prim::<UInt8Type>([m.camera]),
+            tables::prim::<UInt32Type>([m.width]),
+            tables::prim::<UInt32Type>([m.height]),
+            tables::list::<UInt8Type>([m.semantic]),
+            tables::list::<UInt8Type>([m.fixed]),
+            tables::list::<UInt16Type>([m.instance]),
+            tables::list::<Float32Type>([m.depth]),
+            tables::list::<Float32Type>([m.confidence]),
+            tables::binary([m.rgb]),
         ],
     )
+}
+
+/// The `intersect` parameters of the `rays` input's plan (novel views are planned with them).
+fn plan_params(plan: &Table) -> Result<IntersectParams> {
+    const T: &str = "ray_intervals";
+    let b = plan.rows(
+        0..plan.num_rows().min(1),
+        Some(&["k", "far", "sky_interval"]),
+    )?;
+    let (k, far, sky) = (
+        tables::get_prim::<UInt32Type>(&b, T, "k")?,
+        tables::get_prim::<Float64Type>(&b, T, "far")?,
+        tables::get_prim::<Float64Type>(&b, T, "sky_interval")?,
+    );
+    match (k.first(), far.first(), sky.first()) {
+        (Some(&k), Some(&far), Some(&sky_interval)) => Ok(IntersectParams {
+            k,
+            far,
+            sky_interval,
+            cameras: Vec::new(),
+        }),
+        _ => Ok(IntersectParams::default()),
+    }
 }
 
 impl TypedStage for Render {
@@ -155,15 +164,9 @@ impl TypedStage for Render {
     const INPUTS: &'static [InputSlot] = &[
         InputSlot {
             name: "scene",
-            tables: &[
-                "scene_info",
-                "cameras",
-                "primitives",
-                "images",
-                "pseudo_labels",
-            ],
+            tables: &["scene_info", "cameras", "primitives", "images"],
             optional: false,
-            doc: "the scene",
+            doc: "the scene (the input images give the sky colour)",
         },
         InputSlot {
             name: "rays",
@@ -201,62 +204,116 @@ impl TypedStage for Render {
     }
 
     fn run(&self, p: &RenderParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let set = RaySet::from_inputs(inputs)?;
-        let (info, rows) = weights::read(
+        let cams = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+        let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+        let info = PrimInfo::of(&prims);
+        let (model, rows) = weights::read(
             inputs.table("train", "weights")?,
             inputs.table("train", "model")?,
         )?;
-        if info.classes != set.classes {
+        if model.classes != info.classes {
             return Err(StageError::Input(format!(
                 "the field was trained for classes {:?} but this scene's primitives give {:?}",
-                info.classes, set.classes
+                model.classes, info.classes
             )));
         }
-        let engine = p.backend.resolve(&info.spec.config);
-        let field = engine.field(info.spec.clone(), rows)?;
+        // Rendering runs where training ran when that was a GPU.
+        let trained = weights::trained_engine(inputs.table("train", "model")?)?;
+        let engine = p.backend.resolve(&model.spec.config, trained);
+        let field = engine.field(model.spec.clone(), rows)?;
         let sampling = SamplingParams {
             samples: if p.samples > 0 {
                 p.samples
             } else {
-                info.sampling.samples
+                model.sampling.samples
             },
-            ..info.sampling.clone()
+            ..model.sampling.clone()
         };
         let r = Renderer {
             field: field.as_ref(),
             sampling: &sampling,
             chunk: p.chunk,
         };
-        let novel = if p.novel_views.is_empty() {
-            None
-        } else {
-            let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
-            Some(RaySet::for_cameras(
-                &set,
-                &prims,
-                &novel_cameras(&set, &p.novel_views)?,
-            ))
+        // One image at a time: its plan is read, it is rendered and its maps are stored before
+        // the next; nothing grows with the number of images.
+        let plan = inputs.stored("rays", "ray_intervals")?;
+        let planned: Vec<(u32, u8)> = tables::frame_camera_index::<Vec<_>>(
+            &plan.columns(&["frame", "camera"])?,
+            "ray_intervals",
+        )?
+        .into_iter()
+        .map(|(key, _)| key)
+        .collect();
+        let images = inputs.stored("scene", "images")?;
+        let image_rows: HashMap<(u32, u8), usize> =
+            tables::frame_camera_index(&images.columns(&["frame", "camera"])?, "images")?;
+        let novel = novel_cameras(&cams, &p.novel_views)?;
+        let camera_of = |key: (u32, u8)| {
+            cams.iter()
+                .find(|c| (c.frame, c.camera) == key)
+                .ok_or_else(|| {
+                    StageError::Input(format!(
+                        "ray_intervals: frame {} camera {} is not in `cameras`",
+                        key.0, key.1
+                    ))
+                })
         };
-        let total_rays = (set.len() + novel.as_ref().map_or(0, RaySet::len)) as u64;
-        let mut done = 0u64;
-        let mut report = |rays: u64, im: &ImageInfo| {
-            done += rays;
-            progress.update(
-                done,
-                total_rays,
-                &format!("frame {} cam {}", im.frame, im.camera),
-            );
-        };
-        let (mut maps, scene_sky) = render_images(&r, &set, None, &mut report)?;
-        if let Some(novel) = &novel {
-            maps.extend(render_images(&r, novel, Some(scene_sky), &mut report)?.0);
+        let pixels = |c: &Camera| c.width as u64 * c.height as u64;
+        let mut total = novel.iter().map(|(_, _, c)| pixels(c)).sum::<u64>();
+        for &key in &planned {
+            total += pixels(&camera_of(key)?.cam);
         }
-        let t = label_maps_table(&sequence(inputs)?, maps)?;
-        Ok(Tables::from([("label_maps".to_string(), t)]))
+        let seq = sequence(inputs)?;
+        let mut out = inputs.writer("label_maps")?;
+        let (mut done, mut sky_sum) = (0u64, [0f32; 3]);
+        for (row, &(frame, camera)) in planned.iter().enumerate() {
+            let cam = &camera_of((frame, camera))?.cam;
+            let n = (cam.width * cam.height) as usize;
+            let image_plan = ImagePlan::from_row(&plan.row(row)?, 0, n, prims.len())?;
+            let rays = PlannedImage::new(&info, cam, &image_plan)?;
+            let input = image_rows.get(&(frame, camera)).ok_or_else(|| {
+                StageError::Input(format!("no `images` row for frame {frame} camera {camera}"))
+            })?;
+            let input = images.row(*input)?;
+            let rgb = tables::get_binary(&input, "images", "rgb")?.value(0);
+            let (maps, sky) = render_image(&r, &rays, frame, camera, SkyColour::FromInput(rgb))?;
+            for (acc, v) in sky_sum.iter_mut().zip(sky) {
+                *acc += v;
+            }
+            out.write(label_maps_row(&seq, maps)?)?;
+            done += n as u64;
+            progress.update(done, total, &format!("frame {frame} cam {camera}"));
+        }
+        if !novel.is_empty() {
+            // Novel views: planned here as the `rays` stage planned the scene; their sky is the
+            // mean sky colour of the scene's images.
+            let ip = plan_params(plan)?;
+            let bvh = geometry::Bvh::build(&prims);
+            let scene_sky = sky_sum.map(|v| v / planned.len().max(1) as f32);
+            for (frame, camera, cam) in &novel {
+                let image_plan = plan_image(&prims, &bvh, cam, &ip);
+                let rays = PlannedImage::new(&info, cam, &image_plan)?;
+                let (maps, _) =
+                    render_image(&r, &rays, *frame, *camera, SkyColour::Fixed(scene_sky))?;
+                out.write(label_maps_row(&seq, maps)?)?;
+                done += pixels(cam);
+                progress.update(done, total, &format!("novel view {camera}"));
+            }
+        }
+        let mut tables = Tables::new();
+        out.finish_into(&mut tables)?;
+        Ok(tables)
     }
 
-    fn export(&self, _: &RenderParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        export_label_maps(&t["label_maps"], dir)
+    fn export(&self, _: &RenderParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let maps = t
+            .get("label_maps")
+            .ok_or_else(|| StageError::Input("missing table `label_maps`".into()))?;
+        let mut files = Vec::new();
+        for r in 0..maps.num_rows() {
+            files.extend(export_label_maps(&maps.row(r)?, dir)?);
+        }
+        Ok(files)
     }
 }
 

@@ -14,7 +14,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::metrics::scores::METHODS;
 use crate::report::{depth_colors, error_colors, panoptic_colors, png_data_uri, training_svg};
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::stage::{
+    InputSlot, Inputs, Progress, Result, StageError, Table, TableSet, Tables, TypedStage,
+};
 use crate::{labels, tables};
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -93,51 +95,58 @@ fn fmt_value(v: Option<f64>, scale: f64, decimals: usize) -> String {
     v.map_or("–".into(), |v| format!("{:.*}", decimals, v * scale))
 }
 
+/// A per-image table, read one pictured image at a time.
 struct Maps<'a> {
-    batch: &'a RecordBatch,
+    table: &'a Table,
     index: BTreeMap<(u32, u8), usize>,
-    table: &'static str,
 }
 
 impl<'a> Maps<'a> {
-    fn new(batch: &'a RecordBatch, table: &'static str) -> Result<Self> {
+    fn new(table: &'a Table) -> Result<Self> {
+        let keys = table.columns(&["frame", "camera"])?;
         Ok(Maps {
-            batch,
-            index: tables::frame_camera_index(batch, table)?,
+            index: tables::frame_camera_index(&keys, table.name())?,
             table,
         })
     }
-    fn u8(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u8]>> {
-        let Some(&r) = self.index.get(&key) else {
-            return Ok(None);
-        };
-        Ok(Some(
-            tables::get_list::<UInt8Type>(self.batch, self.table, col)?.row(r),
-        ))
+
+    /// The row of image `key`, if the table has one.
+    fn get(&self, key: (u32, u8)) -> Result<Option<Row>> {
+        self.index
+            .get(&key)
+            .map(|&r| {
+                Ok(Row {
+                    batch: self.table.row(r)?,
+                    table: self.table.name().to_string(),
+                })
+            })
+            .transpose()
     }
-    fn u16(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u16]>> {
-        let Some(&r) = self.index.get(&key) else {
-            return Ok(None);
-        };
-        Ok(Some(
-            tables::get_list::<UInt16Type>(self.batch, self.table, col)?.row(r),
-        ))
+}
+
+/// One image's row of a per-image table.
+struct Row {
+    batch: RecordBatch,
+    table: String,
+}
+
+impl Row {
+    fn u8(&self, col: &str) -> Result<&[u8]> {
+        Ok(tables::get_list::<UInt8Type>(&self.batch, &self.table, col)?.row(0))
     }
-    fn f32(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [f32]>> {
-        let Some(&r) = self.index.get(&key) else {
-            return Ok(None);
-        };
-        Ok(Some(
-            tables::get_list::<Float32Type>(self.batch, self.table, col)?.row(r),
-        ))
+    fn u16(&self, col: &str) -> Result<&[u16]> {
+        Ok(tables::get_list::<UInt16Type>(&self.batch, &self.table, col)?.row(0))
     }
-    fn bytes(&self, key: (u32, u8), col: &str) -> Result<Option<&'a [u8]>> {
-        let Some(&r) = self.index.get(&key) else {
-            return Ok(None);
-        };
-        Ok(Some(
-            tables::get_binary(self.batch, self.table, col)?.value(r),
-        ))
+    fn f32(&self, col: &str) -> Result<&[f32]> {
+        Ok(tables::get_list::<Float32Type>(&self.batch, &self.table, col)?.row(0))
+    }
+    fn bytes(&self, col: &str) -> Result<&[u8]> {
+        Ok(tables::get_binary(&self.batch, &self.table, col)?.value(0))
+    }
+    fn size(&self) -> Result<(u32, u32)> {
+        let w = tables::get_prim::<UInt32Type>(&self.batch, &self.table, "width")?;
+        let h = tables::get_prim::<UInt32Type>(&self.batch, &self.table, "height")?;
+        Ok((w[0], h[0]))
     }
 }
 
@@ -263,24 +272,17 @@ impl Page {
         progress: &dyn Progress,
     ) -> Result<()> {
         let html = &mut self.html;
-        let images = Maps::new(inputs.table("scene", "images")?, "images")?;
-        let pseudo = Maps::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
-        let maps_t = inputs.table("render", "label_maps")?;
-        let maps = Maps::new(maps_t, "label_maps")?;
-        let gt_t = inputs.table("evaluate", "eval_gt")?;
-        let gt = Maps::new(gt_t, "eval_gt")?;
-        let has_gt = gt_t.num_rows() > 0;
-        // The size of each pictured image, from the table its keys come from.
-        let (size_t, size_name, keys) = if has_gt {
-            let keys: Vec<(u32, u8)> = gt.index.keys().copied().take(p.max_frames).collect();
-            (gt_t, "eval_gt", keys)
+        let images = Maps::new(inputs.stored("scene", "images")?)?;
+        let pseudo = Maps::new(inputs.stored("scene", "pseudo_labels")?)?;
+        let maps = Maps::new(inputs.stored("render", "label_maps")?)?;
+        let gt = Maps::new(inputs.stored("evaluate", "eval_gt")?)?;
+        let has_gt = !gt.index.is_empty();
+        let keys: Vec<(u32, u8)> = if has_gt {
+            gt.index.keys().copied().take(p.max_frames).collect()
         } else {
             let all: Vec<(u32, u8)> = maps.index.keys().copied().collect();
-            (maps_t, "label_maps", spread(&all, p.max_frames))
+            spread(&all, p.max_frames)
         };
-        let widths = tables::get_prim::<UInt32Type>(size_t, size_name, "width")?;
-        let heights = tables::get_prim::<UInt32Type>(size_t, size_name, "height")?;
-        let size_index = if has_gt { &gt.index } else { &maps.index };
         if has_gt {
             html.push_str(
                 "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
@@ -308,26 +310,55 @@ impl Page {
         html.push_str("</div><table class=\"frames\">");
         for (n, key) in keys.iter().enumerate() {
             progress.update(n as u64, keys.len() as u64, "pictures");
-            let r = size_index[key];
-            let (w, h) = (widths[r], heights[r]);
+            let m = maps.get(*key)?;
+            let g = gt.get(*key)?;
+            // The size of the pictured image, from the table its key comes from.
+            let Some((w, h)) = (if has_gt { &g } else { &m })
+                .as_ref()
+                .map(Row::size)
+                .transpose()?
+            else {
+                continue;
+            };
             let mut cells: Vec<(&str, Option<Vec<u8>>)> = vec![
-                ("RGB", images.bytes(*key, "rgb")?.map(<[u8]>::to_vec)),
+                (
+                    "RGB",
+                    images
+                        .get(*key)?
+                        .map(|r| r.bytes("rgb").map(<[u8]>::to_vec))
+                        .transpose()?,
+                ),
                 (
                     "pseudo labels",
-                    pseudo.u8(*key, "labels")?.map(crate::pngio::colorize),
+                    pseudo
+                        .get(*key)?
+                        .map(|r| r.u8("labels").map(crate::pngio::colorize))
+                        .transpose()?,
                 ),
             ];
-            let ours = maps.u8(*key, "semantic")?;
+            let ours = m.as_ref().map(|m| m.u8("semantic")).transpose()?;
             cells.push(("ours", ours.map(crate::pngio::colorize)));
             if has_gt {
-                let gsem = gt.u8(*key, "semantic")?.unwrap_or(&[]);
+                let gsem = g
+                    .as_ref()
+                    .map(|g| g.u8("semantic"))
+                    .transpose()?
+                    .unwrap_or(&[]);
                 cells.push(("ground truth", Some(crate::pngio::colorize(gsem))));
                 cells.push(("error", ours.map(|o| error_colors(o, gsem))));
             }
-            cells.push(("panoptic", maps.u16(*key, "instance")?.map(panoptic_colors)));
+            cells.push((
+                "panoptic",
+                m.as_ref()
+                    .map(|m| m.u16("instance"))
+                    .transpose()?
+                    .map(panoptic_colors),
+            ));
             cells.push((
                 "depth",
-                maps.f32(*key, "depth")?
+                m.as_ref()
+                    .map(|m| m.f32("depth"))
+                    .transpose()?
                     .map(|d| depth_colors(d, p.depth_range)),
             ));
             let _ = write!(
@@ -359,12 +390,13 @@ impl Page {
     }
 }
 
-/// The label ids of the rendered semantic maps, ascending (the legend without scores).
-fn classes_rendered(maps: &RecordBatch) -> Result<Vec<u8>> {
-    let sem = tables::get_list::<UInt8Type>(maps, "label_maps", "semantic")?;
+/// The label ids of the rendered semantic maps, ascending (the legend without scores); one
+/// image read at a time.
+fn classes_rendered(maps: &Table) -> Result<Vec<u8>> {
     let mut seen = [false; 256];
     for r in 0..maps.num_rows() {
-        for &l in sem.row(r) {
+        let row = maps.rows(r..r + 1, Some(&["semantic"]))?;
+        for &l in tables::get_list::<UInt8Type>(&row, "label_maps", "semantic")?.row(0) {
             seen[l as usize] = true;
         }
     }
@@ -442,7 +474,7 @@ impl TypedStage for Report {
             page.class_iou(inputs.table("evaluate", "class_iou")?)?
         } else {
             page.not_evaluated();
-            classes_rendered(inputs.table("render", "label_maps")?)?
+            classes_rendered(inputs.stored("render", "label_maps")?)?
         };
         if let Some(log) = inputs.optional_table("train", "train_log")? {
             if let Some(svg) = training_svg(log)? {
@@ -463,8 +495,8 @@ impl TypedStage for Report {
         Ok(Tables::from([("report_files".to_string(), t)]))
     }
 
-    fn export(&self, _: &ReportParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        let files = &t["report_files"];
+    fn export(&self, _: &ReportParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let files = t.table("report_files")?;
         let names = tables::get_strings(files, "report_files", "name")?;
         let contents = tables::get_binary(files, "report_files", "content")?;
         let mut out = Vec::new();

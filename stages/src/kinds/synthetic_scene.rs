@@ -7,7 +7,7 @@ use crate::scene::{
     kitti360_export, preview,
     synthetic::{generate, to_tables, SceneParams},
 };
-use crate::stage::{InputSlot, Inputs, Progress, Result, Tables, TypedStage};
+use crate::stage::{InputSlot, Inputs, Progress, Result, TableSet, Tables, TypedStage};
 
 /// The synthetic street scene kind.
 pub struct SyntheticScene;
@@ -42,9 +42,10 @@ impl TypedStage for SyntheticScene {
         to_tables(p, &g)
     }
 
-    fn export(&self, _: &SceneParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
-        let mut files = kitti360_export::write(t, dir)?;
-        files.extend(preview::write(t, &dir.join("previews"))?);
+    fn export(&self, _: &SceneParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let t = t.whole_tables()?;
+        let mut files = kitti360_export::write(&t, dir)?;
+        files.extend(preview::write(&t, &dir.join("previews"))?);
         Ok(files)
     }
 }

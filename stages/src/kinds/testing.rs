@@ -6,7 +6,9 @@ use std::{thread, time::Duration};
 use arrow::datatypes::Int64Type;
 use serde::{Deserialize, Serialize};
 
-use crate::{tables, InputSlot, Inputs, Progress, Result, Stage, StageError, Tables, TypedStage};
+use crate::{
+    tables, InputSlot, Inputs, Progress, Result, Stage, StageError, TableSet, Tables, TypedStage,
+};
 
 /// Behaviour switches shared by the test kinds.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
@@ -149,10 +151,10 @@ impl TypedStage for TestMap {
     fn export(
         &self,
         _: &MapParams,
-        t: &Tables,
+        t: &TableSet,
         dir: &std::path::Path,
     ) -> Result<Vec<std::path::PathBuf>> {
-        let table = &t["test_numbers"];
+        let table = t.table("test_numbers")?;
         let values = tables::get_prim::<Int64Type>(table, "test_numbers", "value")?;
         let text: String = values.iter().map(|v| format!("{v}\n")).collect();
         let path = dir.join("numbers.txt");

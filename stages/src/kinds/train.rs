@@ -12,12 +12,13 @@ use arrow::datatypes::{Float32Type, Float64Type, UInt32Type};
 use arrow::record_batch::RecordBatch;
 use serde::{Deserialize, Serialize};
 
+use crate::model::TrainError;
 use crate::model::{
     fit, weights, BatchOrder, Engine, FieldSpec, LossTerm, LossTerms, ModelInfo, RayBatch,
     TrainConfig,
 };
 use crate::rng::SplitMix64;
-use crate::sampling::{self, RaySet, SamplingParams};
+use crate::sampling::{self, ImageRays, PrimInfo, SamplingParams};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
 use crate::tables;
 
@@ -48,28 +49,29 @@ impl Default for TrainParams {
 
 pub struct Train;
 
-/// The field spec of a ray set: its classes and the bounds of its primitives.
-pub fn spec_for(set: &RaySet, config: &TrainConfig) -> FieldSpec {
+/// The field spec of a scene's primitives: its classes and the bounds of its primitives.
+pub fn spec_for(prims: &PrimInfo, config: &TrainConfig) -> FieldSpec {
     let pad = 1.0;
     FieldSpec {
         config: config.field.clone(),
-        num_classes: set.classes.len(),
-        aabb_min: set.bounds_min.map(|v| v - pad),
-        aabb_max: set.bounds_max.map(|v| v + pad),
+        num_classes: prims.classes.len(),
+        aabb_min: prims.bounds_min.map(|v| v - pad),
+        aabb_max: prims.bounds_max.map(|v| v + pad),
         seed: config.seed,
     }
 }
 
 /// Rays of the selected cameras that cross a primitive: the ones training draws from.
-fn candidates(set: &RaySet, cameras: &[u8]) -> Vec<u32> {
-    set.images
+fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
+    rays.images
         .iter()
         .filter(|im| cameras.contains(&im.camera))
         .flat_map(|im| {
-            let n = (im.width * im.height) as usize;
-            (im.first_ray..im.first_ray + n)
-                .filter(|&r| set.hits_anything(r))
-                .map(|r| r as u32)
+            im.hits
+                .iter()
+                .enumerate()
+                .filter(|(_, &h)| h > 0)
+                .map(|(p, _)| im.first_ray + p as u32)
         })
         .collect()
 }
@@ -120,14 +122,16 @@ impl TypedStage for Train {
     }
 
     fn run(&self, p: &TrainParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let set = RaySet::from_inputs(inputs)?;
-        let candidates = candidates(&set, &p.cameras);
+        let rays = sampling::train_rays(inputs)?;
+        let candidates = candidates(&rays, &p.cameras);
         if candidates.is_empty() {
             return Err(StageError::Input(
                 "no ray of the selected cameras crosses a primitive".into(),
             ));
         }
-        let mut trainer = p.backend.trainer(&p.train, spec_for(&set, &p.train))?;
+        let mut trainer = p
+            .backend
+            .trainer(&p.train, spec_for(&rays.prims, &p.train))?;
         let iters = p.train.iterations;
         let batch = p.train.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
@@ -141,12 +145,9 @@ impl TypedStage for Train {
             let jitter =
                 SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                     .next_u64();
-            RayBatch::from_samples(&sampling::sample_batch(
-                &set,
-                &ids,
-                &p.sampling,
-                Some(jitter),
-            ))
+            sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
+                .map(|b| RayBatch::from_samples(&b))
+                .map_err(|e| TrainError::Batch(e.to_string()))
         };
         fit(trainer.as_mut(), iters, next_batch, |losses| {
             let it = losses.iteration;
@@ -162,9 +163,9 @@ impl TypedStage for Train {
             }
         })?;
         let info = ModelInfo {
-            spec: spec_for(&set, &p.train),
+            spec: spec_for(&rays.prims, &p.train),
             sampling: p.sampling.clone(),
-            classes: set.classes.clone(),
+            classes: rays.prims.classes.clone(),
         };
         Ok(Tables::from([
             (

@@ -10,7 +10,7 @@
 //! probability in both semantic renderings.
 
 use crate::labels;
-use crate::sampling::{fixed_instance_at, fixed_semantic_at, RaySet};
+use crate::sampling::{fixed_instance_at, fixed_semantic_at, Intervals, PrimInfo};
 
 /// Transmittance below which the rest of a ray is skipped.
 pub const EARLY_STOP_T: f32 = 1e-4;
@@ -43,7 +43,7 @@ pub struct Composite {
     pub confidence: f32,
     /// Argmax class of the fixed rendering S_hat.
     pub fixed_class: usize,
-    /// Argmax thing instance (index into `RaySet::things`) of the class, if any.
+    /// Argmax thing instance (index into `PrimInfo::things`) of the class, if any.
     pub thing: Option<usize>,
 }
 
@@ -93,12 +93,12 @@ fn argmax(v: &[f32]) -> (usize, f32) {
         })
 }
 
-/// Composites ray `r` of `set` from its samples (`t`, `delta`) and the field's outputs at them
-/// (`sigma` [S], `rgb` [S, 3], `logits` [S, C]).
+/// Composites a ray with intervals `iv` from its samples (`t`, `delta`) and the field's outputs
+/// at them (`sigma` [S], `rgb` [S, 3], `logits` [S, C]).
 #[allow(clippy::too_many_arguments)]
 pub fn composite_ray(
-    set: &RaySet,
-    r: usize,
+    prims: &PrimInfo,
+    iv: &Intervals,
     t: &[f32],
     delta: &[f32],
     sigma: &[f32],
@@ -106,8 +106,8 @@ pub fn composite_ray(
     logits: &[f32],
     scratch: &mut Scratch,
 ) -> Composite {
-    let c_n = set.classes.len();
-    let sky = set.sky_class();
+    let c_n = prims.classes.len();
+    let sky = prims.sky_class();
     let Scratch {
         s,
         s_hat,
@@ -138,8 +138,8 @@ pub fn composite_ray(
         wt += w * t[i];
         wsum += w;
         softmax_into(&logits[i * c_n..(i + 1) * c_n], prob);
-        fixed_semantic_at(set, r, t[i], fixed);
-        fixed_instance_at(set, r, t[i], fixed_inst);
+        fixed_semantic_at(prims, iv, t[i], fixed);
+        fixed_instance_at(prims, iv, t[i], fixed_inst);
         for c in 0..c_n {
             s[c] += w * prob[c];
             s_hat[c] += w * fixed[c];
@@ -154,11 +154,11 @@ pub fn composite_ray(
     let (class, confidence) = argmax(s);
     let (fixed_class, _) = argmax(s_hat);
     // Panoptic: instances whose class differs from the argmax class are zeroed.
-    let label = set.classes[class];
+    let label = prims.classes[class];
     let mut thing = None;
     if labels::by_id(label).is_some_and(|l| l.has_instances) {
         let mut best = 0.0;
-        for (k, &(l, _)) in set.things.iter().enumerate() {
+        for (k, &(l, _)) in prims.things.iter().enumerate() {
             if l == label && inst[k] > best {
                 best = inst[k];
                 thing = Some(k);
@@ -180,27 +180,23 @@ pub fn composite_ray(
 mod tests {
     use super::*;
 
-    fn one_ray() -> RaySet {
-        RaySet {
+    fn one_ray() -> PrimInfo {
+        PrimInfo {
             classes: vec![labels::ROAD, labels::CAR, labels::SKY],
             things: vec![(labels::CAR, 3)],
-            origin: vec![[0.0; 3]],
-            dir: vec![[0.0, 0.0, 1.0]],
-            z_scale: vec![1.0],
-            offsets: vec![0, 1],
-            t_in: vec![4.0],
-            t_out: vec![8.0],
-            prim: vec![0],
-            sky: vec![[8.0, 58.0]],
-            rgb: vec![[0.0; 3]],
-            label: vec![0],
-            u_mask: vec![true],
-            depth: vec![0.0],
             prim_class: vec![1],
             prim_thing: vec![0],
             ..Default::default()
         }
     }
+
+    /// The ray's one interval: the car box over [4, 8], then sky [8, 58].
+    const IV: Intervals = Intervals {
+        t_in: &[4.0],
+        t_out: &[8.0],
+        prim: &[0],
+        sky: [8.0, 58.0],
+    };
 
     #[test]
     fn constant_density_matches_the_analytic_opacity() {
@@ -212,7 +208,7 @@ mod tests {
         let rgb = [0.2, 0.4, 0.6].repeat(4);
         let logits = [0.0, 5.0, 0.0].repeat(4);
         let mut sc = Scratch::new(3, 1);
-        let c = composite_ray(&set, 0, &t, &delta, &sigma, &rgb, &logits, &mut sc);
+        let c = composite_ray(&set, &IV, &t, &delta, &sigma, &rgb, &logits, &mut sc);
         let op = 1.0 - (-2.0f32).exp();
         assert!((c.opacity - op).abs() < 1e-5);
         assert!((c.rgb[1] - 0.4 * op).abs() < 1e-5);
@@ -237,7 +233,7 @@ mod tests {
         let mut sc = Scratch::new(3, 1);
         let c = composite_ray(
             &set,
-            0,
+            &IV,
             &[5.0],
             &[1.0],
             &[0.0],
@@ -251,7 +247,7 @@ mod tests {
         // A huge density in the first sample: the rest does not matter.
         let c = composite_ray(
             &set,
-            0,
+            &IV,
             &[4.5, 5.5],
             &[1.0, 1.0],
             &[1e10, f32::NAN],

@@ -70,6 +70,19 @@ impl Engine {
         }
     }
 
+    /// Whether this engine runs on a GPU (a burn GPU backend).
+    pub fn is_gpu(self) -> bool {
+        matches!(self, Engine::Burn(Backend::Wgpu | Backend::Cuda))
+    }
+
+    /// The engine that renders a field trained with `trained` when none is named: the same GPU
+    /// when the field was trained on one this build has, else [`Engine::for_field`].
+    pub fn for_rendering(trained: Option<Engine>, config: &FieldConfig) -> Engine {
+        trained
+            .filter(|e| e.is_gpu())
+            .unwrap_or_else(|| Engine::for_field(config))
+    }
+
     /// Whether this engine can run a field with `config`; the error names the option.
     pub fn supports(self, config: &FieldConfig) -> Result<(), ModelError> {
         match self {
@@ -163,9 +176,11 @@ impl<'de> Deserialize<'de> for Engine {
 pub struct EngineChoice(pub Option<Engine>);
 
 impl EngineChoice {
-    /// The chosen engine for a field with `config`.
-    pub fn resolve(self, config: &FieldConfig) -> Engine {
-        self.0.unwrap_or_else(|| Engine::for_field(config))
+    /// The chosen engine for a field with `config` trained with `trained`: the one named, else
+    /// [`Engine::for_rendering`].
+    pub fn resolve(self, config: &FieldConfig, trained: Option<Engine>) -> Engine {
+        self.0
+            .unwrap_or_else(|| Engine::for_rendering(trained, config))
     }
 }
 
@@ -210,6 +225,25 @@ mod tests {
         assert_eq!(c, EngineChoice(None));
         let c: EngineChoice = serde_json::from_value(serde_json::json!("fused")).unwrap();
         assert_eq!(c.0, Some(Engine::Fused));
+    }
+
+    #[test]
+    fn rendering_runs_on_the_gpu_the_field_was_trained_on() {
+        let grid = FieldConfig::default();
+        for gpu in [Backend::Wgpu, Backend::Cuda] {
+            let e = Engine::Burn(gpu);
+            assert_eq!(Engine::for_rendering(Some(e), &grid), e);
+            assert_eq!(EngineChoice(None).resolve(&grid, Some(e)), e);
+            assert_eq!(
+                EngineChoice(Some(Engine::Fused)).resolve(&grid, Some(e)),
+                Engine::Fused,
+                "a named engine wins"
+            );
+        }
+        // Trained on a CPU engine (or one this build lacks): the best CPU engine renders.
+        for trained in [None, Some(Engine::Burn(Backend::Flex)), Some(Engine::Fused)] {
+            assert_eq!(Engine::for_rendering(trained, &grid), Engine::Fused);
+        }
     }
 
     #[test]

@@ -9,8 +9,9 @@ use rayon::prelude::*;
 
 use super::composite::{composite_ray, march_step, Composite, Scratch, EARLY_STOP_T};
 use super::field::{Field, FieldSamples, Heads};
+use crate::intervals::RayPlan;
 use crate::labels;
-use crate::sampling::{self, ImageInfo, RaySet, SamplingParams};
+use crate::sampling::{self, PlannedImage, Rays, SamplingParams};
 use crate::stage::{Result, StageError};
 
 /// What rendering needs besides the rays.
@@ -42,111 +43,111 @@ pub struct ImageMaps {
     pub rgb: Vec<u8>,
 }
 
-/// Renders every image of `set`. The colour of rays that hit nothing is the mean input colour
-/// of such pixels in the image, or `sky_override` (novel views have no input); also returns the
-/// mean of those sky colours over the images. `progress` sees the rays done of each image as
-/// they complete.
-pub fn render_images(
-    r: &Renderer,
-    set: &RaySet,
-    sky_override: Option<[f32; 3]>,
-    progress: &mut dyn FnMut(u64, &ImageInfo),
-) -> Result<(Vec<ImageMaps>, [f32; 3])> {
-    let (field, sampling) = (r.field, r.sampling);
-    let mut maps = Vec::with_capacity(set.images.len());
-    let (c_n, t_n) = (set.classes.len(), set.things.len());
-    let sky_label = labels::SKY;
-    let mut sky_sum = [0f32; 3];
-    for im in &set.images {
-        let n = (im.width * im.height) as usize;
-        let mut semantic = vec![sky_label; n];
-        let mut fixed = vec![sky_label; n];
-        let mut instance = vec![sky_label as u16 * labels::INSTANCE_FACTOR as u16; n];
-        let mut depth = vec![0f32; n];
-        let mut confidence = vec![1f32; n];
-        let mut rgb = vec![0u8; n * 3];
-        // Sky colour for rays without primitives: the mean colour of those pixels' input.
-        let sky_ids: Vec<usize> = (0..n)
-            .filter(|&p| !set.hits_anything(im.first_ray + p))
-            .collect();
-        let mut sky_rgb = [0f32; 3];
-        for &p in &sky_ids {
-            for (acc, v) in sky_rgb.iter_mut().zip(set.rgb[im.first_ray + p]) {
-                *acc += v / sky_ids.len() as f32;
-            }
-        }
-        if let Some(c) = sky_override {
-            sky_rgb = c;
-        }
-        for (acc, v) in sky_sum.iter_mut().zip(sky_rgb) {
-            *acc += v;
-        }
-        for &p in &sky_ids {
-            for k in 0..3 {
-                rgb[p * 3 + k] = (sky_rgb[k] * 255.0).round() as u8;
-            }
-        }
-        let hit_ids: Vec<u32> = (0..n)
-            .filter(|&p| set.hits_anything(im.first_ray + p))
-            .map(|p| (im.first_ray + p) as u32)
-            .collect();
-        // Chunks in parallel (each samples, marches and composites its rays), so the serial
-        // parts of one chunk overlap with the others' field evaluations.
-        let chunks: Vec<&[u32]> = hit_ids.chunks(r.chunk).collect();
-        let composited: Vec<Vec<Composite>> = chunks
-            .par_iter()
-            .map(|chunk| composite_chunk(set, sampling, field, chunk, c_n, t_n))
-            .collect::<Result<_>>()?;
-        for (chunk, results) in chunks.iter().zip(composited) {
-            for (&rid, c) in chunk.iter().zip(results) {
-                let px = rid as usize - im.first_ray;
-                let label = set.classes[c.class];
-                semantic[px] = label;
-                fixed[px] = set.classes[c.fixed_class];
-                let inst = c.thing.map_or(0, |k| set.things[k].1.min(999));
-                instance[px] = (label as u32 * labels::INSTANCE_FACTOR + inst) as u16;
-                depth[px] = if c.opacity > 0.5 {
-                    c.t * set.z_scale[rid as usize]
-                } else {
-                    0.0
-                };
-                confidence[px] = c.confidence;
-                let rem = (1.0 - c.opacity).max(0.0);
-                for k in 0..3 {
-                    rgb[px * 3 + k] =
-                        ((c.rgb[k] + rem * sky_rgb[k]).clamp(0.0, 1.0) * 255.0).round() as u8;
-                }
-            }
-        }
-        progress(hit_ids.len() as u64, im);
-        progress(sky_ids.len() as u64, im);
-        maps.push(ImageMaps {
-            frame: im.frame,
-            camera: im.camera,
-            width: im.width,
-            height: im.height,
-            semantic,
-            fixed,
-            instance,
-            depth,
-            confidence,
-            rgb,
-        });
-    }
-    let n = set.images.len().max(1) as f32;
-    Ok((maps, sky_sum.map(|v| v / n)))
+/// The colour of rays that cross no primitive.
+#[derive(Debug, Clone, Copy)]
+pub enum SkyColour<'a> {
+    /// The mean input colour of those pixels (RGB bytes of the input image).
+    FromInput(&'a [u8]),
+    /// A given colour (novel views have no input).
+    Fixed([f32; 3]),
 }
 
-/// Samples, evaluates and composites the rays `chunk` of `set`.
+/// Renders one image: its rays, with the plan of each pixel, and its frame and camera id.
+/// Returns the maps and the sky colour used.
+pub fn render_image(
+    r: &Renderer,
+    rays: &PlannedImage,
+    frame: u32,
+    camera: u8,
+    sky: SkyColour,
+) -> Result<(ImageMaps, [f32; 3])> {
+    let (field, sampling, prims) = (r.field, r.sampling, rays.prims);
+    let (c_n, t_n) = (prims.classes.len(), prims.things.len());
+    let (width, height) = (rays.cam.width, rays.cam.height);
+    let n = (width * height) as usize;
+    let sky_label = labels::SKY;
+    let mut semantic = vec![sky_label; n];
+    let mut fixed = vec![sky_label; n];
+    let mut instance = vec![sky_label as u16 * labels::INSTANCE_FACTOR as u16; n];
+    let mut depth = vec![0f32; n];
+    let mut confidence = vec![1f32; n];
+    let mut rgb = vec![0u8; n * 3];
+    let sky_ids: Vec<usize> = (0..n).filter(|&p| !rays.hits_anything(p)).collect();
+    let sky_rgb = match sky {
+        SkyColour::Fixed(c) => c,
+        SkyColour::FromInput(input) => {
+            if input.len() != n * 3 {
+                return Err(StageError::Input(format!(
+                    "images: frame {frame} camera {camera} has {} bytes, expected {width}x{height}x3",
+                    input.len()
+                )));
+            }
+            let mut c = [0f32; 3];
+            for &p in &sky_ids {
+                for (k, acc) in c.iter_mut().enumerate() {
+                    *acc += (input[p * 3 + k] as f32 / 255.0) / sky_ids.len() as f32;
+                }
+            }
+            c
+        }
+    };
+    for &p in &sky_ids {
+        for k in 0..3 {
+            rgb[p * 3 + k] = (sky_rgb[k] * 255.0).round() as u8;
+        }
+    }
+    let hit_ids: Vec<u32> = (0..n as u32)
+        .filter(|&p| rays.hits_anything(p as usize))
+        .collect();
+    // Chunks in parallel (each samples, marches and composites its rays), so the serial
+    // parts of one chunk overlap with the others' field evaluations.
+    let chunks: Vec<&[u32]> = hit_ids.chunks(r.chunk).collect();
+    let composited: Vec<Vec<(Composite, f32)>> = chunks
+        .par_iter()
+        .map(|chunk| composite_chunk(rays, sampling, field, chunk, c_n, t_n))
+        .collect::<Result<_>>()?;
+    for (chunk, results) in chunks.iter().zip(composited) {
+        for (&px, (c, z_scale)) in chunk.iter().zip(results) {
+            let px = px as usize;
+            let label = prims.classes[c.class];
+            semantic[px] = label;
+            fixed[px] = prims.classes[c.fixed_class];
+            let inst = c.thing.map_or(0, |k| prims.things[k].1.min(999));
+            instance[px] = (label as u32 * labels::INSTANCE_FACTOR + inst) as u16;
+            depth[px] = if c.opacity > 0.5 { c.t * z_scale } else { 0.0 };
+            confidence[px] = c.confidence;
+            let rem = (1.0 - c.opacity).max(0.0);
+            for k in 0..3 {
+                rgb[px * 3 + k] =
+                    ((c.rgb[k] + rem * sky_rgb[k]).clamp(0.0, 1.0) * 255.0).round() as u8;
+            }
+        }
+    }
+    let maps = ImageMaps {
+        frame,
+        camera,
+        width,
+        height,
+        semantic,
+        fixed,
+        instance,
+        depth,
+        confidence,
+        rgb,
+    };
+    Ok((maps, sky_rgb))
+}
+
+/// Samples, evaluates and composites the rays `chunk` of `rays`; each with its z scale.
 fn composite_chunk(
-    set: &RaySet,
+    rays: &PlannedImage,
     sampling: &SamplingParams,
     field: &dyn Field,
     chunk: &[u32],
     c_n: usize,
     t_n: usize,
-) -> Result<Vec<Composite>> {
-    let b = sampling::sample_batch(set, chunk, sampling, None);
+) -> Result<Vec<(Composite, f32)>> {
+    let b = sampling::sample_for_render(rays, chunk, sampling)?;
     let FieldSamples {
         sigma,
         rgb: col,
@@ -154,23 +155,26 @@ fn composite_chunk(
     } = evaluate_marching(field, &b.positions, &b.dirs, &b.deltas, b.samples, c_n)?;
     let s_n = b.samples;
     let mut scratch = Scratch::new(c_n, t_n);
-    Ok(chunk
+    let mut buf = RayPlan::default();
+    chunk
         .iter()
         .enumerate()
-        .map(|(i, &rid)| {
+        .map(|(i, &px)| {
+            let ray = rays.ray(px, &mut buf)?;
             let rs = i * s_n..(i + 1) * s_n;
-            composite_ray(
-                set,
-                rid as usize,
+            let c = composite_ray(
+                rays.prims,
+                &ray.intervals,
                 &b.t[rs.clone()],
                 &b.deltas[rs.clone()],
                 &sigma[rs.clone()],
                 &col[rs.start * 3..rs.end * 3],
                 &logits[rs.start * c_n..rs.end * c_n],
                 &mut scratch,
-            )
+            );
+            Ok((c, b.z_scale[i]))
         })
-        .collect())
+        .collect()
 }
 
 /// Samples per ray evaluated per round of [`evaluate_marching`].

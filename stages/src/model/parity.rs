@@ -1,4 +1,5 @@
-//! Every engine against the reference (the burn engine on the default burn backend), and the
+//! Every engine against the reference (the burn engine on the CPU reference backend, flex): the
+//! fused kernels and every compiled-in burn backend (wgpu and cuda included), and the
 //! behaviour every engine must have: training lowers every loss and renders the labels, is
 //! reproducible, names numerical failures, and leaves no field option silently ignored.
 
@@ -18,7 +19,7 @@ use crate::sampling::{sample_batch, RaySet};
 
 /// The engine every other one is held to.
 fn reference() -> Engine {
-    Engine::Burn(Backend::default())
+    Engine::Burn(Backend::REFERENCE)
 }
 
 fn others() -> Vec<Engine> {
@@ -51,7 +52,7 @@ fn train(
     fit(
         t.as_mut(),
         steps,
-        |it| toy_batch(&set, it),
+        |it| Ok(toy_batch(&set, it)),
         |l| log.push(l.clone()),
     )
     .unwrap_or_else(|e| panic!("{engine}: {e}"));
@@ -60,17 +61,17 @@ fn train(
 
 /// Per pixel of the toy set: (class index, depth, thing) rendered with `field`.
 fn render(field: &dyn Field, set: &RaySet) -> Vec<(usize, f32, Option<usize>)> {
-    let ids: Vec<u32> = (0..set.len() as u32).collect();
-    let b = sample_batch(set, &ids, &toy_sampling(), None);
+    let ids: Vec<u32> = (0..set.origin.len() as u32).collect();
+    let b = sample_batch(set, &ids, &toy_sampling(), None).unwrap();
     let out = field.evaluate(&b.positions, &b.dirs, b.samples, Heads::ALL);
-    let (s, c) = (b.samples, set.classes.len());
-    let mut scratch = Scratch::new(c, set.things.len());
+    let (s, c) = (b.samples, set.prims.classes.len());
+    let mut scratch = Scratch::new(c, set.prims.things.len());
     (0..b.rays)
         .map(|i| {
             let r = i * s..(i + 1) * s;
             let px = composite_ray(
-                set,
-                i,
+                &set.prims,
+                &set.intervals(i),
                 &b.t[r.clone()],
                 &b.deltas[r.clone()],
                 &out.sigma[r.clone()],
@@ -336,10 +337,10 @@ fn every_engine_lowers_every_loss_and_renders_the_labels() {
             "{engine}: {right}/64 pixels rendered with their label"
         );
         for (i, (c, d, th)) in maps.iter().enumerate() {
-            if set.classes[*c] == crate::labels::CAR {
+            if set.prims.classes[*c] == crate::labels::CAR {
                 assert_eq!(*th, Some(0), "{engine}: pixel {i} is the car instance");
             }
-            if set.hits_anything(i) && *c != set.sky_class() {
+            if set.hits_anything(i) && *c != set.prims.sky_class() {
                 assert!((d - 2.0).abs() < 0.5, "{engine}: pixel {i} depth {d}");
             }
         }
@@ -485,9 +486,9 @@ impl Field for Counting<'_> {
 #[test]
 fn marching_rays_composite_exactly_like_evaluating_every_sample() {
     let set = toy_set();
-    let ids: Vec<u32> = (0..set.len() as u32).collect();
-    let b = sample_batch(&set, &ids, &toy_sampling(), None);
-    let (s, c) = (b.samples, set.classes.len());
+    let ids: Vec<u32> = (0..set.origin.len() as u32).collect();
+    let b = sample_batch(&set, &ids, &toy_sampling(), None).unwrap();
+    let (s, c) = (b.samples, set.prims.classes.len());
     for engine in Engine::available() {
         for shift in [-1.0f32, 10.0, 30.0] {
             let config = TrainConfig {
@@ -513,13 +514,13 @@ fn marching_rays_composite_exactly_like_evaluating_every_sample() {
                 super::maps::evaluate_marching(&counting, &b.positions, &b.dirs, &b.deltas, s, c)
                     .unwrap();
             let composite = |out: &super::field::FieldSamples| {
-                let mut scratch = Scratch::new(c, set.things.len());
+                let mut scratch = Scratch::new(c, set.prims.things.len());
                 (0..b.rays)
                     .map(|i| {
                         let r = i * s..(i + 1) * s;
                         composite_ray(
-                            &set,
-                            i,
+                            &set.prims,
+                            &set.intervals(i),
                             &b.t[r.clone()],
                             &b.deltas[r.clone()],
                             &out.sigma[r.clone()],

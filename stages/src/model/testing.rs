@@ -6,7 +6,7 @@ use crate::model::batch::{RayBatch, RaySamples, RayTargets};
 use crate::model::config::{FieldConfig, FieldSpec, GridConfig, TrainConfig};
 use crate::model::params::NamedWeight;
 use crate::rng::SplitMix64;
-use crate::sampling::{sample_batch, RaySet, SamplingParams, NONE};
+use crate::sampling::{sample_batch, PrimInfo, RaySet, SamplingParams, NONE};
 
 /// 64 rays along +z through a 2-class toy scene: left half hits a class-0 box, right half a
 /// class-1 box (z in [2, 3]), then a sky interval (z in [5, 7]); every 4th ray sees only
@@ -96,12 +96,14 @@ pub fn toy_config() -> TrainConfig {
 /// every ray then has a sky interval z in [5, 7]; every 4th ray crosses no primitive.
 pub fn toy_set() -> RaySet {
     let mut s = RaySet {
-        classes: vec![ROAD, CAR, SKY],
-        things: vec![(CAR, 1)],
-        prim_class: vec![0, 1],
-        prim_thing: vec![u32::MAX, 0],
-        bounds_min: [-1.0, -1.0, 2.0],
-        bounds_max: [1.0, 1.0, 3.0],
+        prims: PrimInfo {
+            classes: vec![ROAD, CAR, SKY],
+            things: vec![(CAR, 1)],
+            prim_class: vec![0, 1],
+            prim_thing: vec![u32::MAX, 0],
+            bounds_min: [-1.0, -1.0, 2.0],
+            bounds_max: [1.0, 1.0, 3.0],
+        },
         offsets: vec![0],
         ..Default::default()
     };
@@ -144,13 +146,14 @@ pub fn toy_sampling() -> SamplingParams {
 
 /// Training batch `iteration` of the toy set: every ray, freshly jittered.
 pub fn toy_batch(set: &RaySet, iteration: usize) -> RayBatch {
-    let ids: Vec<u32> = (0..set.len() as u32).collect();
+    let ids: Vec<u32> = (0..set.origin.len() as u32).collect();
     let b = sample_batch(
         set,
         &ids,
         &toy_sampling(),
         Some(iteration as u64 * 7919 + 1),
-    );
+    )
+    .expect("toy rays sample");
     RayBatch::from_samples(&b)
 }
 

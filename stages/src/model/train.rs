@@ -33,11 +33,11 @@ pub trait Trainer {
 pub fn fit(
     trainer: &mut dyn Trainer,
     iterations: usize,
-    mut batch: impl FnMut(usize) -> RayBatch,
+    mut batch: impl FnMut(usize) -> Result<RayBatch, TrainError>,
     mut on_step: impl FnMut(&LossTerms),
 ) -> Result<(), TrainError> {
     for it in 0..iterations {
-        let losses = trainer.step(&batch(it))?;
+        let losses = trainer.step(&batch(it)?)?;
         on_step(&losses);
     }
     Ok(())

@@ -52,6 +52,14 @@ pub fn model_table(info: &ModelInfo, engine: Engine) -> Result<RecordBatch> {
     )
 }
 
+/// The engine a model was trained with, if this build has it.
+pub fn trained_engine(model: &RecordBatch) -> Result<Option<Engine>> {
+    let names = tables::get_strings(model, "model", "backend")?;
+    Ok((!names.is_empty())
+        .then(|| Engine::from_name(names.value(0)).ok())
+        .flatten())
+}
+
 /// Reads a trained model back from its `weights` and `model` tables.
 pub fn read(weights: &RecordBatch, model: &RecordBatch) -> Result<(ModelInfo, Vec<NamedWeight>)> {
     let info_col = tables::get_strings(model, "model", "info")?;

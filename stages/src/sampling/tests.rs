@@ -1,12 +1,19 @@
 //! Tests of the sampling plan on toy ray sets: sample placement, fixed fields, batches.
 
 use super::*;
+use crate::intervals::{ImagePlan, IntersectParams};
+use crate::labels;
 
 /// One ray crossing a car box [5, 7] inside a road slab [4, 10], sky [10, 60].
 fn toy() -> RaySet {
     RaySet {
-        classes: vec![labels::ROAD, labels::CAR, labels::SKY],
-        things: vec![(labels::CAR, 1)],
+        prims: PrimInfo {
+            classes: vec![labels::ROAD, labels::CAR, labels::SKY],
+            things: vec![(labels::CAR, 1)],
+            prim_class: vec![0, 1],
+            prim_thing: vec![u32::MAX, 0],
+            ..Default::default()
+        },
         origin: vec![[0.0; 3]],
         dir: vec![[0.0, 0.0, 1.0]],
         z_scale: vec![1.0],
@@ -19,9 +26,6 @@ fn toy() -> RaySet {
         label: vec![1],
         u_mask: vec![true],
         depth: vec![0.0],
-        prim_class: vec![0, 1],
-        prim_thing: vec![u32::MAX, 0],
-        ..Default::default()
     }
 }
 
@@ -66,8 +70,8 @@ fn parallel_batches_equal_the_serial_ones() {
     let p = SamplingParams::default();
     let ids: Vec<u32> = (0..300).rev().chain(5..40).collect();
     for seed in [Some(11), None] {
-        let par = sample_batch(&set, &ids, &p, seed);
-        let ser = sample_rays(&set, &ids, &p, seed);
+        let par = sample_batch(&set, &ids, &p, seed).unwrap();
+        let ser = sample_rays(&set, &ids, &p, seed).unwrap();
         assert_eq!(format!("{par:?}"), format!("{ser:?}"), "seed {seed:?}");
         assert_eq!(par.rays, ids.len());
     }
@@ -76,22 +80,23 @@ fn parallel_batches_equal_the_serial_ones() {
 #[test]
 fn fixed_fields_follow_the_intervals() {
     let set = toy();
+    let (prims, iv) = (&set.prims, set.intervals(0));
     let mut out = [0.0; 3];
-    assert!(fixed_semantic_at(&set, 0, 4.5, &mut out));
+    assert!(fixed_semantic_at(prims, &iv, 4.5, &mut out));
     assert_eq!(out, [1.0, 0.0, 0.0]);
     assert!(
-        !fixed_semantic_at(&set, 0, 6.0, &mut out),
+        !fixed_semantic_at(prims, &iv, 6.0, &mut out),
         "road and car overlap"
     );
     assert_eq!(out, [0.5, 0.5, 0.0]);
-    assert!(fixed_semantic_at(&set, 0, 30.0, &mut out));
+    assert!(fixed_semantic_at(prims, &iv, 30.0, &mut out));
     assert_eq!(out, [0.0, 0.0, 1.0], "sky interval");
-    assert!(!fixed_semantic_at(&set, 0, 2.0, &mut out));
+    assert!(!fixed_semantic_at(prims, &iv, 2.0, &mut out));
     assert_eq!(out, [0.0; 3], "outside everything");
     let mut inst = [0.0];
-    assert!(fixed_instance_at(&set, 0, 6.0, &mut inst));
+    assert!(fixed_instance_at(prims, &iv, 6.0, &mut inst));
     assert_eq!(inst, [1.0]);
-    assert!(!fixed_instance_at(&set, 0, 8.0, &mut inst));
+    assert!(!fixed_instance_at(prims, &iv, 8.0, &mut inst));
 }
 
 #[test]
@@ -104,7 +109,7 @@ fn samples_stay_inside_primitives_and_strata_tile_them() {
     };
     let mut rng = SplitMix64::new(7);
     let (mut t, mut d) = (vec![0.0; 8], vec![0.0; 8]);
-    place_samples(&set, 0, &p, Some(&mut rng), &mut t, &mut d);
+    place_samples(&set.intervals(0), &p, Some(&mut rng), &mut t, &mut d);
     // Union [4, 10] gets 6 strata of width 1; sky [10, 60] two of width 25.
     for i in 0..6 {
         assert!(t[i] >= 4.0 + i as f32 && t[i] <= 5.0 + i as f32, "{t:?}");
@@ -120,7 +125,7 @@ fn samples_stay_inside_primitives_and_strata_tile_them() {
     let mut empty = toy();
     empty.offsets = vec![0, 0];
     empty.sky = vec![[0.0, 0.0]];
-    place_samples(&empty, 0, &p, None, &mut t, &mut d);
+    place_samples(&empty.intervals(0), &p, None, &mut t, &mut d);
     assert!(d.iter().all(|&x| x == 0.0));
 }
 
@@ -128,11 +133,75 @@ fn samples_stay_inside_primitives_and_strata_tile_them() {
 fn batches_are_deterministic_for_a_seed() {
     let set = toy();
     let p = SamplingParams::default();
-    let a = sample_batch(&set, &[0], &p, Some(3));
-    let b = sample_batch(&set, &[0], &p, Some(3));
-    let c = sample_batch(&set, &[0], &p, Some(4));
+    let a = sample_batch(&set, &[0], &p, Some(3)).unwrap();
+    let b = sample_batch(&set, &[0], &p, Some(3)).unwrap();
+    let c = sample_batch(&set, &[0], &p, Some(4)).unwrap();
     assert_eq!(a.t, b.t);
     assert_ne!(a.t, c.t);
     assert_eq!(a.label, vec![1]);
     assert_eq!(a.positions.len(), p.per_ray() * 3);
+}
+
+/// Training traces each ray again when it is drawn; rendering reads the plan the `intersect`
+/// stage stored. Both must give every ray the same origin, direction and intervals.
+#[test]
+fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
+    use crate::geometry::{cameras_from_table, primitives_from_table, Bvh};
+    use crate::intervals::{plan_image, plan_row};
+    use crate::scene::synthetic::{generate, to_tables, SceneParams};
+    let sp = SceneParams {
+        frames: 2,
+        scale: 0.05,
+        ..SceneParams::default()
+    };
+    let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+    let cams = cameras_from_table(&scene["cameras"]).unwrap();
+    let prims = primitives_from_table(&scene["primitives"]).unwrap();
+    let (bvh, ip) = (Bvh::build(&prims), IntersectParams::default());
+    let rows: Vec<_> = cams
+        .iter()
+        .map(|c| plan_row(c, plan_image(&prims, &bvh, &c.cam, &ip), &ip).unwrap())
+        .collect();
+    let plan = arrow::compute::concat_batches(&rows[0].schema(), &rows).unwrap();
+    let mem = crate::MemoryInputs::new([
+        ("scene", scene.clone()),
+        (
+            "rays",
+            crate::Tables::from([("ray_intervals".to_string(), plan.clone())]),
+        ),
+    ]);
+    let traced = train_rays(&mem.inputs()).unwrap();
+    assert_eq!(traced.images.len(), cams.len());
+    let (mut a, mut b) = (RayPlan::default(), RayPlan::default());
+    let mut crossing = 0;
+    for (r, im) in traced.images.iter().enumerate() {
+        let n = (im.cam.width * im.cam.height) as usize;
+        let image_plan = ImagePlan::from_row(&plan, r, n, prims.len()).unwrap();
+        let planned = PlannedImage::new(&traced.prims, &im.cam, &image_plan).unwrap();
+        for p in 0..n as u32 {
+            let t = traced.ray(im.first_ray + p, &mut a).unwrap();
+            let s = planned.ray(p, &mut b).unwrap();
+            assert_eq!(
+                (t.origin, t.dir, t.z_scale),
+                (s.origin, s.dir, s.z_scale),
+                "image {r} pixel {p}"
+            );
+            let (ti, si) = (t.intervals, s.intervals);
+            assert_eq!(
+                (ti.t_in, ti.t_out, ti.prim, ti.sky),
+                (si.t_in, si.t_out, si.prim, si.sky),
+                "image {r} pixel {p}"
+            );
+            crossing += usize::from(ti.hits_anything());
+        }
+    }
+    assert!(crossing > 100, "{crossing} rays cross a primitive");
+    // A plan made over other primitives is caught when a ray is traced.
+    let mut wrong = traced.images[0].hits.clone();
+    let p = wrong.iter().position(|&h| h > 0).unwrap();
+    wrong[p] += 1;
+    let mut bad = train_rays(&mem.inputs()).unwrap();
+    bad.images[0].hits = wrong;
+    let e = bad.ray(p as u32, &mut a).unwrap_err().to_string();
+    assert!(e.contains("ray_intervals does not match the scene"), "{e}");
 }

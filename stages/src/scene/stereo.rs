@@ -319,9 +319,8 @@ pub fn depth_from_disparity(disp: &[f32], fx: f64, baseline: f64, max_depth: f64
 mod tests {
     use super::*;
     use crate::kinds::stereo_depth::StereoDepth;
-    use crate::{tables, Inputs};
+    use crate::tables;
     use arrow::datatypes::Float32Type;
-    use std::collections::BTreeMap;
 
     /// A smooth random texture value at continuous x (linear interpolation of a seeded table).
     fn texture(x: f64, y: usize) -> u8 {
@@ -407,8 +406,8 @@ mod tests {
         let out = {
             let s = StereoDepth;
             let v = crate::Stage::canonical_params(&s, &serde_json::json!({})).unwrap();
-            let slots = BTreeMap::from([("scene".to_string(), &t)]);
-            crate::Stage::run(&s, &v, &Inputs::new(slots), &crate::NoProgress).unwrap()
+            let mem = crate::MemoryInputs::new([("scene", t.clone())]);
+            crate::Stage::run(&s, &v, &mem.inputs(), &crate::NoProgress).unwrap()
         };
         let sd =
             tables::get_list::<Float32Type>(&out["stereo_depth"], "stereo_depth", "depth").unwrap();

@@ -4,15 +4,15 @@
 use std::path::{Path, PathBuf};
 
 use crate::geometry::{self, Bvh, CameraRow};
-use crate::intervals::{first_hit_images, plan_image, plans_to_table, IntersectParams};
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::intervals::{first_hit_images, plan_image, plan_row, IntersectParams};
+use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, TableSet, Tables, TypedStage};
 
 pub struct Intersect;
 
 impl TypedStage for Intersect {
     type Params = IntersectParams;
     const KIND: &'static str = "intersect";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "ray-primitive intervals of every pixel (the first k per ray, plus a sky interval)";
     const INPUTS: &'static [InputSlot] = &[InputSlot {
@@ -65,21 +65,24 @@ impl TypedStage for Intersect {
         }
         let bvh = Bvh::build(&prims);
         let total = rows.len() as u64;
-        let mut images = Vec::with_capacity(rows.len());
+        // One image at a time, each row stored as it is planned: the plan of a full-size scene
+        // (68 M rays) is gigabytes.
+        let mut out = inputs.writer("ray_intervals")?;
         for (i, row) in rows.into_iter().enumerate() {
             progress.update(
                 i as u64,
                 total,
                 &format!("frame {} camera {}", row.frame, row.camera),
             );
-            images.push((row, plan_image(&prims, &bvh, &row.cam, p)));
+            out.write(plan_row(row, plan_image(&prims, &bvh, &row.cam, p), p)?)?;
         }
         progress.update(total, total, "done");
-        let t = plans_to_table(p.k, &images)?;
-        Ok(Tables::from([("ray_intervals".to_string(), t)]))
+        let mut tables = Tables::new();
+        out.finish_into(&mut tables)?;
+        Ok(tables)
     }
 
-    fn export(&self, p: &IntersectParams, t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
+    fn export(&self, p: &IntersectParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
         let table = t
             .get("ray_intervals")
             .ok_or_else(|| StageError::Input("missing table `ray_intervals`".into()))?;
@@ -87,12 +90,14 @@ impl TypedStage for Intersect {
         std::fs::create_dir_all(&out_dir)
             .map_err(|e| StageError::Failed(format!("creating {}: {e}", out_dir.display())))?;
         let mut written = Vec::new();
-        for img in first_hit_images(table, p.far)? {
-            let path = out_dir.join(format!("{:010}_{}.png", img.frame, img.camera));
-            img.image
-                .save(&path)
-                .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
-            written.push(path);
+        for r in 0..table.num_rows() {
+            for img in first_hit_images(&table.row(r)?, p.far)? {
+                let path = out_dir.join(format!("{:010}_{}.png", img.frame, img.camera));
+                img.image
+                    .save(&path)
+                    .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
+                written.push(path);
+            }
         }
         Ok(written)
     }

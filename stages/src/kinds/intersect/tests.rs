@@ -1,7 +1,7 @@
 //! Tests of the `intersect` stage on a hand-made scene with exact answers, its schema, params
 //! and export.
 
-use std::collections::BTreeMap;
+use crate::MemoryInputs;
 
 use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 use glam::{DAffine3, DMat3, DQuat, DVec3};
@@ -67,8 +67,8 @@ fn scene(camera: u8) -> Tables {
 }
 
 fn run(params: &IntersectParams, scene: &Tables) -> Result<RecordBatch> {
-    let inputs = Inputs::new(BTreeMap::from([("scene".to_string(), scene)]));
-    let mut out = TypedStage::run(&Intersect, params, &inputs, &NoProgress)?;
+    let mem = MemoryInputs::new([("scene", scene.clone())]);
+    let mut out = TypedStage::run(&Intersect, params, &mem.inputs(), &NoProgress)?;
     Ok(out.remove("ray_intervals").unwrap())
 }
 
@@ -211,7 +211,13 @@ fn export_writes_one_png_per_image() {
     let t = run(&IntersectParams::default(), &scene(0)).unwrap();
     let dir = std::env::temp_dir().join(format!("geom-export-{}", std::process::id()));
     let tables = Tables::from([("ray_intervals".to_string(), t)]);
-    let files = TypedStage::export(&Intersect, &IntersectParams::default(), &tables, &dir).unwrap();
+    let files = TypedStage::export(
+        &Intersect,
+        &IntersectParams::default(),
+        &tables.into(),
+        &dir,
+    )
+    .unwrap();
     assert_eq!(files, vec![dir.join("first_hit/0000000007_0.png")]);
     let img = image::open(&files[0]).unwrap().to_rgb8();
     assert_eq!(img.dimensions(), (3, 3));

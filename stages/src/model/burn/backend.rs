@@ -25,6 +25,10 @@ pub enum Backend {
 }
 
 impl Backend {
+    /// The CPU backend every engine and every GPU backend is held to in tests (always compiled
+    /// in: the crate's default feature).
+    pub const REFERENCE: Backend = Backend::Flex;
+
     /// The backends compiled into this build, in priority order.
     pub fn available() -> Vec<Backend> {
         let mut all = Vec::new();

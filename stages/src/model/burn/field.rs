@@ -314,7 +314,7 @@ mod tests {
 
     #[test]
     fn fresh_field_has_positive_density_and_all_heads_for_both_encodings() {
-        let device = Backend::default().device();
+        let device = Backend::REFERENCE.device();
         for config in [FieldConfig::default(), FieldConfig::pe()] {
             let f = RadianceField::init(spec(config), &device);
             let pos = [
@@ -332,7 +332,7 @@ mod tests {
 
     #[test]
     fn a_field_built_from_rows_gives_the_same_rows_back() {
-        let device = Backend::default().device();
+        let device = Backend::REFERENCE.device();
         for config in [FieldConfig::default(), FieldConfig::pe()] {
             let s = spec(config);
             let rows = params::initial(&s);
@@ -356,7 +356,7 @@ mod tests {
             max_resolution: 8,
             init_scale: 0.0,
         };
-        let device = Backend::default().device();
+        let device = Backend::REFERENCE.device();
         let n = 9usize;
         let mut values = vec![0f32; cfg.table_size()];
         for z in 0..n {

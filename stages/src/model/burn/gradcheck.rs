@@ -23,8 +23,8 @@ pub fn check<const D: usize>(
     h: f32,
     rtol: f32,
 ) -> Vec<f32> {
-    let ad_device = Backend::default().train_device();
-    let plain = Backend::default().device();
+    let ad_device = Backend::REFERENCE.train_device();
+    let plain = Backend::REFERENCE.device();
     let leaf =
         Tensor::<D>::from_data(TensorData::new(x.to_vec(), shape), &ad_device).require_grad();
     let y = f(leaf.clone());

@@ -265,7 +265,7 @@ mod tests {
 
     #[test]
     fn impossible_label_costs_minus_log_eps_and_stays_finite() {
-        let d = Backend::default().train_device();
+        let d = Backend::REFERENCE.train_device();
         let p = t2(&[0.0, 1.0], [1, 2], &d).require_grad();
         let l = label_nll(p.clone(), t2(&[1.0, 0.0], [1, 2], &d), t1(&[1.0], &d));
         let g = p
@@ -285,7 +285,7 @@ mod tests {
 
     #[test]
     fn empty_masks_give_zero_not_nan() {
-        let d = Backend::default().device();
+        let d = Backend::REFERENCE.device();
         let l = label_nll(
             t2(&[0.5, 0.5], [1, 2], &d),
             t2(&[1.0, 0.0], [1, 2], &d),
@@ -300,7 +300,7 @@ mod tests {
     /// logits of +-1e4: every loss and every gradient stays finite.
     #[test]
     fn extreme_inputs_give_finite_losses_and_gradients() {
-        let d = Backend::default().train_device();
+        let d = Backend::REFERENCE.train_device();
         let (r, s, c) = (5, 4, 3);
         #[rustfmt::skip]
         let sigma = [

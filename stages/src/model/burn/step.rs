@@ -475,13 +475,13 @@ mod tests {
     fn nan_gradient_is_reported_with_term_and_parameter() {
         // A NaN gradient with finite losses is hard to provoke through the field, so the
         // detection (which names the parameter) is checked on a planted gradient.
-        let field = RadianceField::init(toy_spec(), &Backend::default().train_device());
+        let field = RadianceField::init(toy_spec(), &Backend::REFERENCE.train_device());
         let mut grads = GradientsParams::new();
         assert!(grad_norm(&field, &grads).unwrap() == 0.0);
         let id = field.semantic.layers[0].bias.id;
         grads.register::<1>(
             id,
-            Tensor::from_floats([f32::NAN; 32].as_slice(), &Backend::default().device()),
+            Tensor::from_floats([f32::NAN; 32].as_slice(), &Backend::REFERENCE.device()),
         );
         assert_eq!(
             grad_norm(&field, &grads).unwrap_err(),

@@ -108,7 +108,7 @@ mod tests {
 
     #[test]
     fn constant_density_over_one_interval_has_opacity_one_minus_exp() {
-        let d = Backend::default().device();
+        let d = Backend::REFERENCE.device();
         // sigma = 0.7 over L = 2 split in 64 samples: sum w = 1 - exp(-1.4), any split.
         let s = 64;
         let w = render_weights(
@@ -121,7 +121,7 @@ mod tests {
 
     #[test]
     fn two_samples_by_hand() {
-        let d = Backend::default().device();
+        let d = Backend::REFERENCE.device();
         // sigma = [1, 2], delta = [0.5, 0.25], t = [1, 2], colours red then green.
         let w = render_weights(t2(&[1.0, 2.0], [1, 2], &d), t2(&[0.5, 0.25], [1, 2], &d));
         let a1 = 1.0 - (-0.5f32).exp();
@@ -154,7 +154,7 @@ mod tests {
 
     #[test]
     fn opaque_first_sample_takes_everything_and_sky_gets_nothing() {
-        let d = Backend::default().device();
+        let d = Backend::REFERENCE.device();
         let w = render_weights(t2(&[1e10, 1.0, 1.0], [1, 3], &d), t2(&[1.0; 3], [1, 3], &d));
         assert_eq!(vec2(w.weights.clone()), vec![1.0, 0.0, 0.0]);
         let probs = Tensor::<3>::from_data(
@@ -166,7 +166,7 @@ mod tests {
 
     #[test]
     fn empty_ray_is_all_sky_and_single_sample_rays_work() {
-        let d = Backend::default().device();
+        let d = Backend::REFERENCE.device();
         let w = render_weights(t2(&[0.0, 0.0], [1, 2], &d), t2(&[1.0, 1.0], [1, 2], &d));
         let probs = Tensor::<3>::from_data(TensorData::new(vec![0.5f32; 4], [1, 2, 2]), &d);
         assert_eq!(vec2(render_semantics(&w, probs, 1)), vec![0.0, 1.0]);

@@ -33,7 +33,7 @@ fn toy_fields_with_heads(head_layers: usize) -> (RadianceField, FusedField) {
     };
     let weights = lively(params::initial(&spec), 9);
     let burn =
-        RadianceField::from_weights(spec.clone(), &weights, &Backend::default().train_device())
+        RadianceField::from_weights(spec.clone(), &weights, &Backend::REFERENCE.train_device())
             .unwrap();
     let fused = FusedField::from_weights(spec, weights).unwrap();
     (burn, fused)

@@ -632,9 +632,8 @@ fn the_intersect_stage_gives_the_same_first_primitive_labels_on_the_round_trip()
     let rays = |t: &Tables| {
         let s = crate::kinds::intersect::Intersect;
         let v = Stage::canonical_params(&s, &serde_json::json!({})).unwrap();
-        let mut slots = std::collections::BTreeMap::new();
-        slots.insert("scene".to_string(), t);
-        Stage::run(&s, &v, &Inputs::new(slots), &NoProgress).unwrap()
+        let mem = crate::MemoryInputs::new([("scene", t.clone())]);
+        Stage::run(&s, &v, &mem.inputs(), &NoProgress).unwrap()
     };
     // The synthetic scene with its ellipsoids replaced by the 16 x 8 tessellation the export
     // writes: the loaded scene must match it exactly, pixel for pixel.

@@ -377,7 +377,7 @@ fn export_writes_the_kitti360_layout() {
     let files = Stage::export(
         &SyntheticScene,
         &serde_json::to_value(&p).unwrap(),
-        &t,
+        &t.clone().into(),
         &dir,
     )
     .unwrap();
@@ -581,9 +581,9 @@ fn the_intersect_stage_accepts_the_scene() {
     };
     let t = to_tables(&p, &generate(&p, &NoProgress).unwrap()).unwrap();
     let kind = crate::kinds::find("intersect").expect("intersect kind registered");
-    let inputs = crate::Inputs::new([("scene".to_string(), &t)].into_iter().collect());
+    let mem = crate::MemoryInputs::new([("scene", t)]);
     let out = kind
-        .run(&kind.default_params(), &inputs, &NoProgress)
+        .run(&kind.default_params(), &mem.inputs(), &NoProgress)
         .unwrap();
     assert!(!out.is_empty());
 }

@@ -1,0 +1,333 @@
+//! Every ray of a scene's images as training draws them ([`ImageRays`]): the images the `rays`
+//! input planned (in its row order), each with its camera, the plan's hit counts and its
+//! targets (RGB, pseudo labels, stereo depth) borrowed from the `scene` (and `depth`) tables;
+//! each ray's intervals are traced again when it is drawn.
+
+use std::collections::HashMap;
+
+use arrow::datatypes::{Float32Type, Float64Type, UInt32Type, UInt8Type};
+use arrow::record_batch::RecordBatch;
+
+use super::rays::{pixel_ray, Intervals, PrimInfo, RayTargets, Rays, SceneRay, NONE};
+use crate::geometry::{self, Primitive};
+use crate::intervals::{IntersectParams, RayPlan};
+use crate::stage::{Inputs, Result, StageError};
+use crate::tables;
+
+/// One image of the scene as training sees it: its camera and per-pixel targets.
+pub struct TrainImage<'a> {
+    pub frame: u32,
+    pub camera: u8,
+    pub cam: geometry::Camera,
+    /// First ray of this image among all images' rays.
+    pub first_ray: u32,
+    /// Per pixel: primitive intervals the `intersect` stage kept (0 = pure sky).
+    pub hits: Vec<u8>,
+    pub targets: Targets<'a>,
+}
+
+/// The per-pixel targets of one image: RGB (bytes), and pseudo labels and stereo depth where the
+/// image has them; borrowed from the input tables.
+#[derive(Clone, Copy)]
+pub struct Targets<'a> {
+    pub rgb: &'a [u8],
+    pub labels: Option<&'a [u8]>,
+    pub depth: Option<&'a [f32]>,
+}
+
+/// Every ray of a scene's images, its intervals traced again whenever it is drawn: holding them
+/// for every ray of a full-size scene (68 M rays) took gigabytes, tracing a batch of 2048 rays
+/// takes about a millisecond. Targets are read from the input tables in place.
+pub struct ImageRays<'a> {
+    pub prims: PrimInfo,
+    pub images: Vec<TrainImage<'a>>,
+    primitives: Vec<Primitive>,
+    bvh: geometry::Bvh,
+    params: IntersectParams,
+    rays: u32,
+}
+
+impl<'a> ImageRays<'a> {
+    pub fn new(
+        primitives: Vec<Primitive>,
+        images: Vec<TrainImage<'a>>,
+        params: IntersectParams,
+    ) -> Result<Self> {
+        let mut rays = 0u64;
+        for im in &images {
+            if im.first_ray as u64 != rays {
+                return Err(StageError::Failed(
+                    "images must be listed in ray order".into(),
+                ));
+            }
+            rays += im.hits.len() as u64;
+        }
+        let rays = u32::try_from(rays).map_err(|_| {
+            StageError::Input(format!(
+                "{rays} rays: more than 2^32 rays in one scene; split the sequence into scenes"
+            ))
+        })?;
+        Ok(Self {
+            prims: PrimInfo::of(&primitives),
+            bvh: geometry::Bvh::build(&primitives),
+            primitives,
+            images,
+            params,
+            rays,
+        })
+    }
+
+    /// The image of ray `r` and the pixel in it.
+    pub fn locate(&self, r: u32) -> (&TrainImage<'a>, usize) {
+        let i = self.images.partition_point(|im| im.first_ray <= r) - 1;
+        let im = &self.images[i];
+        (im, (r - im.first_ray) as usize)
+    }
+
+    /// Whether ray `r` crosses a primitive, by the `intersect` stage's plan.
+    pub fn hits_anything(&self, r: u32) -> bool {
+        let (im, p) = self.locate(r);
+        im.hits[p] > 0
+    }
+}
+
+impl Rays for ImageRays<'_> {
+    fn prims(&self) -> &PrimInfo {
+        &self.prims
+    }
+    fn len(&self) -> usize {
+        self.rays as usize
+    }
+    fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>> {
+        let (im, p) = self.locate(r);
+        let w = im.cam.width;
+        let (x, y) = (p as u32 % w, p as u32 / w);
+        let (origin, dir, z_scale) = pixel_ray(&im.cam, x, y);
+        buf.trace(
+            &self.primitives,
+            &self.bvh,
+            &im.cam.pixel_ray(x, y),
+            &self.params,
+        );
+        if buf.t_in.len() != im.hits[p] as usize {
+            return Err(StageError::Input(format!(
+                "ray_intervals does not match the scene: pixel ({x}, {y}) of frame {} camera {} \
+                 has {} intervals there but crosses {} primitive intervals now (was the \
+                 `intersect` stage run on other primitives or cameras?)",
+                im.frame,
+                im.camera,
+                im.hits[p],
+                buf.t_in.len()
+            )));
+        }
+        let t = &im.targets;
+        let label = t.labels.map_or(NONE, |l| self.prims.label_class(l[p]));
+        let intervals = Intervals {
+            t_in: &buf.t_in,
+            t_out: &buf.t_out,
+            prim: &buf.prim,
+            sky: buf.sky,
+        };
+        Ok(SceneRay {
+            origin,
+            dir,
+            z_scale,
+            targets: RayTargets {
+                rgb: [0, 1, 2].map(|c| t.rgb[p * 3 + c] as f32 / 255.0),
+                label,
+                u_mask: self.prims.ray_mask(label, &intervals),
+                depth: t.depth.map_or(0.0, |d| {
+                    if d[p].is_finite() && d[p] > 0.0 {
+                        d[p]
+                    } else {
+                        0.0
+                    }
+                }),
+            },
+            intervals,
+        })
+    }
+}
+
+/// A per-image input table with its (frame, camera) -> row index.
+struct ImageRows<'a> {
+    index: HashMap<(u32, u8), usize>,
+    batch: &'a RecordBatch,
+    table: &'static str,
+}
+
+impl<'a> ImageRows<'a> {
+    fn new(batch: &'a RecordBatch, table: &'static str) -> Result<Self> {
+        Ok(Self {
+            index: tables::frame_camera_index(batch, table)?,
+            batch,
+            table,
+        })
+    }
+}
+
+/// Columns of `ray_intervals` training reads (not the intervals: it traces them again).
+const PLAN_COLUMNS: &[&str] = &[
+    "frame",
+    "camera",
+    "width",
+    "height",
+    "k",
+    "far",
+    "sky_interval",
+    "hits",
+];
+
+/// The rays of every image of the `rays` input's plan, with their targets from `scene` (and a
+/// connected `depth` stage, which takes precedence over the scene's own stereo depth). Images
+/// without pseudo labels (right camera) get none.
+pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
+    let cams = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+    let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+    let images = ImageRows::new(inputs.table("scene", "images")?, "images")?;
+    let pseudo = ImageRows::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
+    let depth_table = match inputs.optional_table("depth", "stereo_depth")? {
+        Some(t) => Some(t),
+        None => inputs.optional_table("scene", "stereo_depth")?,
+    };
+    let stereo = depth_table
+        .map(|t| ImageRows::new(t, "stereo_depth"))
+        .transpose()?;
+    let plan = inputs
+        .stored("rays", "ray_intervals")?
+        .columns(PLAN_COLUMNS)?;
+    let params = plan_params(&plan)?;
+    const T: &str = "ray_intervals";
+    let frames = tables::get_prim::<UInt32Type>(&plan, T, "frame")?;
+    let cameras = tables::get_prim::<UInt8Type>(&plan, T, "camera")?;
+    let hits = tables::get_list::<UInt8Type>(&plan, T, "hits")?;
+    let mut out = Vec::with_capacity(plan.num_rows());
+    let mut first_ray = 0u64;
+    for r in 0..plan.num_rows() {
+        let key = (frames[r], cameras[r]);
+        let cam = cams
+            .iter()
+            .find(|c| (c.frame, c.camera) == key)
+            .ok_or_else(|| {
+                StageError::Input(format!(
+                    "ray_intervals row {r}: frame {} camera {} is not in `cameras`",
+                    key.0, key.1
+                ))
+            })?;
+        let (w, h) = (cam.cam.width, cam.cam.height);
+        let n = (w * h) as usize;
+        if hits.row(r).len() != n {
+            return Err(StageError::Input(format!(
+                "ray_intervals row {r}: per-pixel arrays do not have {w}x{h} entries"
+            )));
+        }
+        let first = u32::try_from(first_ray).map_err(|_| {
+            StageError::Input(format!(
+                "more than 2^32 rays in one scene (at frame {} camera {}); split the sequence \
+                 into scenes",
+                key.0, key.1
+            ))
+        })?;
+        out.push(TrainImage {
+            frame: key.0,
+            camera: key.1,
+            cam: cam.cam.clone(),
+            first_ray: first,
+            hits: hits.row(r).to_vec(),
+            targets: image_targets(key, w, h, &images, &pseudo, stereo.as_ref())?,
+        });
+        first_ray += n as u64;
+    }
+    ImageRays::new(prims, out, params)
+}
+
+/// The `intersect` parameters a plan was made with (every row must agree).
+fn plan_params(plan: &RecordBatch) -> Result<IntersectParams> {
+    const T: &str = "ray_intervals";
+    let k = tables::get_prim::<UInt32Type>(plan, T, "k")?;
+    let far = tables::get_prim::<Float64Type>(plan, T, "far")?;
+    let sky = tables::get_prim::<Float64Type>(plan, T, "sky_interval")?;
+    let Some(((&k0, &far0), &sky0)) = k.iter().zip(far).zip(sky).next() else {
+        return Err(StageError::Input(
+            "ray_intervals has no rows: no image was planned".into(),
+        ));
+    };
+    for (r, ((&a, &b), &c)) in k.iter().zip(far).zip(sky).enumerate() {
+        if (a, b, c) != (k0, far0, sky0) {
+            return Err(StageError::Input(format!(
+                "ray_intervals row {r}: k, far and sky_interval differ from row 0's"
+            )));
+        }
+    }
+    Ok(IntersectParams {
+        k: k0,
+        far: far0,
+        sky_interval: sky0,
+        cameras: Vec::new(),
+    })
+}
+
+/// Per-pixel RGB, pseudo labels and stereo depth of image `key` (`w` x `h`): RGB must exist,
+/// the others may be absent; each must have one value per pixel.
+fn image_targets<'a>(
+    key: (u32, u8),
+    w: u32,
+    h: u32,
+    images: &ImageRows<'a>,
+    pseudo: &ImageRows<'a>,
+    stereo: Option<&ImageRows<'a>>,
+) -> Result<Targets<'a>> {
+    let n = (w * h) as usize;
+    let rgb = images
+        .index
+        .get(&key)
+        .map(|&i| tables::get_binary(images.batch, images.table, "rgb").map(|b| b.value(i)))
+        .transpose()?
+        .ok_or_else(|| {
+            StageError::Input(format!(
+                "no `images` row for frame {} camera {}",
+                key.0, key.1
+            ))
+        })?;
+    if rgb.len() != n * 3 {
+        return Err(StageError::Input(format!(
+            "images: frame {} camera {} has {} bytes, expected {w}x{h}x3",
+            key.0,
+            key.1,
+            rgb.len()
+        )));
+    }
+    let labels_row = pseudo
+        .index
+        .get(&key)
+        .map(|&i| {
+            tables::get_list::<UInt8Type>(pseudo.batch, pseudo.table, "labels").map(|l| l.row(i))
+        })
+        .transpose()?;
+    let depth_row = match stereo {
+        Some(s) => s
+            .index
+            .get(&key)
+            .map(|&i| tables::get_list::<Float32Type>(s.batch, s.table, "depth").map(|l| l.row(i)))
+            .transpose()?,
+        None => None,
+    };
+    for (what, len) in [
+        ("pseudo_labels", labels_row.map(<[u8]>::len)),
+        ("stereo_depth", depth_row.map(<[f32]>::len)),
+    ] {
+        if let Some(len) = len {
+            if len != n {
+                return Err(StageError::Input(format!(
+                    "{what}: frame {} camera {} has {len} values, expected {w}x{h}",
+                    key.0, key.1
+                )));
+            }
+        }
+    }
+    Ok(Targets {
+        rgb,
+        labels: labels_row,
+        depth: depth_row,
+    })
+}
