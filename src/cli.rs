@@ -91,13 +91,16 @@ pub struct Cli {
     pub command: Command,
 }
 
+/// The pipeline file when `-f` is not given.
+const DEFAULT_PIPELINE: &str = "pipeline.yaml";
+
 #[derive(Args, Debug, Clone)]
 pub struct PipelineArgs {
     /// The pipeline file.
     #[arg(
         short = 'f',
         long = "file",
-        default_value = "pipeline.yaml",
+        default_value = DEFAULT_PIPELINE,
         global = true
     )]
     pub file: PathBuf,
@@ -208,7 +211,7 @@ pub enum Command {
     /// Run a bench suite through the cached pipeline: time against error, the ablation table,
     /// machine and runner figures (REPORT.md, report.html, results.parquet, PNG plots).
     Bench {
-        /// A built-in suite (quick, standard) or a suite file (.yaml).
+        /// A built-in suite (quick, standard, full) or a suite file (.yaml).
         #[arg(long, default_value = "quick", value_name = "SUITE")]
         suite: String,
         /// Output directory (default: bench-results/SUITE).
@@ -596,8 +599,13 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
     })?;
     let set = overrides(args)?;
     let out = out.unwrap_or_else(|| PathBuf::from("bench-results").join(&suite.name));
+    // The suite's own base pipeline unless `-f` names another than the default.
+    let base_file = match &suite.pipeline {
+        Some(p) if args.file == Path::new(DEFAULT_PIPELINE) => p.clone(),
+        _ => args.file.clone(),
+    };
     let opts = bench::BenchOptions {
-        base_file: args.file.clone(),
+        base_file,
         cache: args.cache.clone(),
         set,
         suite,

@@ -65,12 +65,17 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
         let gt = gray8(&gt_dir.join(f));
         let ours = gray8(&ws.dir().join("render/semantic").join(f));
         conf.add(&gt, &ours).unwrap();
-        for sub in ["semantic_rgb", "instance", "panoptic_rgb", "depth", "rgb"] {
+        for sub in ["semantic_rgb", "instance", "panoptic_rgb", "depth"] {
             assert!(
                 ws.dir().join("render").join(sub).join(f).exists(),
                 "render/{sub}/{f:?}"
             );
         }
+        // Colour is rendered for novel views only, by default.
+        assert!(
+            !ws.dir().join("render/rgb").join(f).exists(),
+            "render/rgb/{f:?}"
+        );
     }
     let from_files = conf.miou().unwrap();
     let reported = metrics["panoptic_nerf"]["miou"].as_f64().unwrap();
@@ -102,6 +107,15 @@ fn novel_views_are_rendered_and_exported() {
         .trim_end_matches("_0000000020.png")
         .to_string();
     let novel = gray8(&dir.join(format!("{seq}_0000000020_10.png")));
+    // The novel view is rendered in colour (the default `colour: novel_views`).
+    let rgb = image::open(ws.dir().join(format!("render/rgb/{seq}_0000000020_10.png")))
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(rgb.len(), novel.len() * 3);
+    assert!(
+        rgb.pixels().any(|p| p.0 != rgb.get_pixel(0, 0).0),
+        "the colour map is not one flat colour"
+    );
     let original = gray8(&dir.join(format!("{seq}_0000000020.png")));
     assert_eq!(novel.len(), original.len());
     let differ = novel.iter().zip(&original).filter(|(a, b)| a != b).count();

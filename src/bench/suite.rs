@@ -41,6 +41,11 @@ pub const BUILT_IN: &[(&str, &str, &str)] = &[
         "benches/suites/standard.yaml",
         include_str!("../../benches/suites/standard.yaml"),
     ),
+    (
+        "full",
+        "benches/suites/full.yaml",
+        include_str!("../../benches/suites/full.yaml"),
+    ),
 ];
 
 fn yes() -> bool {
@@ -53,6 +58,8 @@ struct SuiteFile {
     name: String,
     #[serde(default)]
     description: String,
+    #[serde(default)]
+    pipeline: Option<PathBuf>,
     #[serde(default)]
     set: Mapping,
     scenes: Vec<SceneFile>,
@@ -158,6 +165,9 @@ pub struct Suite {
     pub file: PathBuf,
     /// The suite text, for the report's reproducibility section.
     pub text: String,
+    /// `pipeline:`: the base pipeline the suite is written for (relative to the working
+    /// directory), used unless `-f` names another.
+    pub pipeline: Option<PathBuf>,
     pub set: Vec<Setting>,
     pub scenes: Vec<Scene>,
     pub budgets: Vec<u64>,
@@ -316,6 +326,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         description: raw.description,
         file: file.to_path_buf(),
         text: text.to_string(),
+        pipeline: raw.pipeline,
         set: cx.settings(&raw.set, "set")?,
         scenes,
         budgets: raw.budgets,
@@ -446,10 +457,21 @@ mod tests {
             let s = load(name).unwrap().unwrap();
             assert_eq!(&s.name, name);
             assert!(s.variants.iter().any(|v| v.name == "complete"));
-            assert!(s.paper.is_some(), "{name}: the paper's ablation figures");
-            let complete = s.variants.iter().find(|v| v.name == "complete").unwrap();
-            assert_eq!(complete.paper.as_deref(), Some("5.23 / 95.1 / 81.4"));
+            if s.variants.len() > 1 {
+                // An ablation: the paper's figures beside it.
+                assert!(s.paper.is_some(), "{name}: the paper's ablation figures");
+                let complete = s.variants.iter().find(|v| v.name == "complete").unwrap();
+                assert_eq!(complete.paper.as_deref(), Some("5.23 / 95.1 / 81.4"));
+            }
+            if let Some(p) = &s.pipeline {
+                let file = Path::new(env!("CARGO_MANIFEST_DIR")).join(p);
+                assert!(file.is_file(), "{name}: its pipeline {}", file.display());
+            }
         }
+        assert_eq!(
+            load("full").unwrap().unwrap().pipeline.as_deref(),
+            Some(Path::new("pipelines/full.yaml"))
+        );
     }
 
     #[test]

@@ -18,3 +18,12 @@ pub enum StageError {
 }
 
 pub type Result<T, E = StageError> = std::result::Result<T, E>;
+
+impl StageError {
+    /// The message without the kind's prefix (for wrapping into another error).
+    pub fn message(&self) -> &str {
+        match self {
+            StageError::Params(m) | StageError::Input(m) | StageError::Failed(m) => m,
+        }
+    }
+}

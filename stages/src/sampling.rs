@@ -17,7 +17,8 @@ mod rays;
 pub use images::{train_rays, ImageRays, Targets, TrainImage};
 use rayon::prelude::*;
 pub use rays::{
-    pixel_ray, Intervals, PlannedImage, PrimInfo, RaySet, RayTargets, Rays, SceneRay, NONE,
+    pixel_ray, Intervals, PlannedImage, PrimInfo, RaySet, RayTargets, Rays, SceneRay, StoredRays,
+    NONE,
 };
 
 use serde::{Deserialize, Serialize};

@@ -17,7 +17,7 @@ use glam::DQuat;
 use crate::geometry::{self, Camera, CameraRow, DAffine3, DVec3};
 use crate::intervals::{plan_image, ImagePlan, IntersectParams};
 use crate::model::maps::{render_image, ImageMaps, Renderer, SkyColour};
-use crate::model::{weights, EngineChoice};
+use crate::model::{weights, EngineChoice, Heads};
 use crate::report::panoptic_colors;
 use crate::sampling::{PlannedImage, PrimInfo, SamplingParams};
 use crate::stage::{
@@ -39,6 +39,26 @@ pub struct RenderParams {
     /// [`NOVEL_CAMERA_BASE`] + their index (files `<seq>_<frame>_10.png`, ...). Their rays are
     /// intersected with the primitives here, with the `intersect` kind's default params.
     pub novel_views: Vec<NovelView>,
+    /// Render only the images of these frames (a preview, a timing); empty: every image the
+    /// `rays` stage planned.
+    pub frames: Vec<u32>,
+    /// Which images get a rendered colour map: `novel_views` (default), `all` or `none`. Colour
+    /// checks the fit and labels nothing; it costs ~15 % of rendering. Images without one have
+    /// an empty `rgb`.
+    pub colour: Colour,
+    /// Render every second pixel of every second row first, then only the pixels where those
+    /// disagree (labels, or the primitives crossed); the others take their labels and
+    /// interpolate depth, confidence and colour. About 2x faster; `false` renders every pixel.
+    pub adaptive: bool,
+}
+
+/// Which images [`RenderParams::colour`] renders in colour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Colour {
+    All,
+    NovelViews,
+    None,
 }
 
 /// Camera id of the first novel view in `label_maps`.
@@ -67,6 +87,9 @@ impl Default for RenderParams {
             samples: 0,
             backend: EngineChoice::default(),
             novel_views: Vec::new(),
+            frames: Vec::new(),
+            colour: Colour::NovelViews,
+            adaptive: true,
         }
     }
 }
@@ -132,6 +155,29 @@ fn label_maps_row(sequence: &str, m: ImageMaps) -> Result<RecordBatch> {
     )
 }
 
+/// The frames of a plan, as `first..last` ranges.
+fn frame_list(plan: &Table) -> Result<String> {
+    let keys = plan.columns(&["frame"])?;
+    let mut frames = tables::get_prim::<UInt32Type>(&keys, "ray_intervals", "frame")?.to_vec();
+    frames.sort_unstable();
+    frames.dedup();
+    let mut out: Vec<String> = Vec::new();
+    let mut i = 0;
+    while i < frames.len() {
+        let mut j = i;
+        while j + 1 < frames.len() && frames[j + 1] == frames[j] + 1 {
+            j += 1;
+        }
+        out.push(if i == j {
+            frames[i].to_string()
+        } else {
+            format!("{}..{}", frames[i], frames[j])
+        });
+        i = j + 1;
+    }
+    Ok(out.join(", "))
+}
+
 /// The `intersect` parameters of the `rays` input's plan (novel views are planned with them).
 fn plan_params(plan: &Table) -> Result<IntersectParams> {
     const T: &str = "ray_intervals";
@@ -158,7 +204,7 @@ fn plan_params(plan: &Table) -> Result<IntersectParams> {
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const INPUTS: &'static [InputSlot] = &[
@@ -229,21 +275,38 @@ impl TypedStage for Render {
             },
             ..model.sampling.clone()
         };
-        let r = Renderer {
+        let renderer = |rgb: bool| Renderer {
             field: field.as_ref(),
             sampling: &sampling,
             chunk: p.chunk,
+            heads: Heads {
+                rgb,
+                semantics: true,
+            },
+            adaptive: p.adaptive,
         };
+        let r = renderer(p.colour == Colour::All);
         // One image at a time: its plan is read, it is rendered and its maps are stored before
         // the next; nothing grows with the number of images.
         let plan = inputs.stored("rays", "ray_intervals")?;
-        let planned: Vec<(u32, u8)> = tables::frame_camera_index::<Vec<_>>(
+        let planned: Vec<(usize, (u32, u8))> = tables::frame_camera_index::<Vec<_>>(
             &plan.columns(&["frame", "camera"])?,
             "ray_intervals",
         )?
         .into_iter()
-        .map(|(key, _)| key)
+        .filter(|((frame, _), _)| p.frames.is_empty() || p.frames.contains(frame))
+        .map(|(key, row)| (row, key))
         .collect();
+        if let Some(f) = p
+            .frames
+            .iter()
+            .find(|f| !planned.iter().any(|(_, (g, _))| g == *f))
+        {
+            return Err(StageError::Params(format!(
+                "`frames`: frame {f} has no planned image (the `rays` stage planned frames {})",
+                frame_list(plan)?
+            )));
+        }
         let images = inputs.stored("scene", "images")?;
         let image_rows: HashMap<(u32, u8), usize> =
             tables::frame_camera_index(&images.columns(&["frame", "camera"])?, "images")?;
@@ -260,13 +323,13 @@ impl TypedStage for Render {
         };
         let pixels = |c: &Camera| c.width as u64 * c.height as u64;
         let mut total = novel.iter().map(|(_, _, c)| pixels(c)).sum::<u64>();
-        for &key in &planned {
+        for &(_, key) in &planned {
             total += pixels(&camera_of(key)?.cam);
         }
         let seq = sequence(inputs)?;
         let mut out = inputs.writer("label_maps")?;
         let (mut done, mut sky_sum) = (0u64, [0f32; 3]);
-        for (row, &(frame, camera)) in planned.iter().enumerate() {
+        for &(row, (frame, camera)) in &planned {
             let cam = &camera_of((frame, camera))?.cam;
             let n = (cam.width * cam.height) as usize;
             let image_plan = ImagePlan::from_row(&plan.row(row)?, 0, n, prims.len())?;
@@ -293,8 +356,13 @@ impl TypedStage for Render {
             for (frame, camera, cam) in &novel {
                 let image_plan = plan_image(&prims, &bvh, cam, &ip);
                 let rays = PlannedImage::new(&info, cam, &image_plan)?;
-                let (maps, _) =
-                    render_image(&r, &rays, *frame, *camera, SkyColour::Fixed(scene_sky))?;
+                let (maps, _) = render_image(
+                    &renderer(p.colour != Colour::None),
+                    &rays,
+                    *frame,
+                    *camera,
+                    SkyColour::Fixed(scene_sky),
+                )?;
                 out.write(label_maps_row(&seq, maps)?)?;
                 done += pixels(cam);
                 progress.update(done, total, &format!("novel view {camera}"));
@@ -354,6 +422,7 @@ pub fn export_label_maps(t: &RecordBatch, dir: &Path) -> Result<Vec<PathBuf>> {
                 2 => pngio::write_gray16(&path, w, h, inst.row(r))?,
                 3 => pngio::write_rgb8(&path, w, h, &panoptic_colors(inst.row(r)))?,
                 4 => pngio::write_gray16(&path, w, h, &pngio::depth_to_u16(depth.row(r)))?,
+                _ if rgb.value(r).is_empty() => continue,
                 _ => pngio::write_rgb8(&path, w, h, rgb.value(r))?,
             }
             out.push(path);

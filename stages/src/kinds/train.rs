@@ -147,7 +147,7 @@ impl TypedStage for Train {
                     .next_u64();
             sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
                 .map(|b| RayBatch::from_samples(&b))
-                .map_err(|e| TrainError::Batch(e.to_string()))
+                .map_err(|e| TrainError::Batch(e.message().to_string()))
         };
         fit(trainer.as_mut(), iters, next_batch, |losses| {
             let it = losses.iteration;

@@ -89,25 +89,31 @@ pub fn lookup_level(
         frac[a] = (x - c as f32).clamp(0.0, 1.0);
     }
     let offset = (l * table) as u32;
+    // Per axis, the weights and row terms of its two vertices; a corner combines one of each
+    // (the same products and rows as vertex by vertex, without recomputing them 8 times).
+    let wa = frac.map(|f| [1.0 - f, f]);
+    let terms: [[u32; 2]; 3] = if dense {
+        let side = n + 1;
+        let scale = [1, side, side * side];
+        std::array::from_fn(|a| [cell[a] * scale[a], (cell[a] + 1) * scale[a]])
+    } else {
+        std::array::from_fn(|a| {
+            [
+                cell[a].wrapping_mul(HASH_PRIMES[a]),
+                (cell[a] + 1).wrapping_mul(HASH_PRIMES[a]),
+            ]
+        })
+    };
+    let mask = table as u32 - 1;
     for corner in 0..8 {
-        let mut weight = 1.0f32;
-        let mut v = [0u32; 3];
-        for a in 0..3 {
-            let bit = (corner >> a) & 1;
-            v[a] = cell[a] + bit as u32;
-            weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
-        }
+        let (b0, b1, b2) = (corner & 1, (corner >> 1) & 1, (corner >> 2) & 1);
         let row = if dense {
-            let side = n + 1;
-            v[0] + side * (v[1] + side * v[2])
+            terms[0][b0] + terms[1][b1] + terms[2][b2]
         } else {
-            (v[0].wrapping_mul(HASH_PRIMES[0])
-                ^ v[1].wrapping_mul(HASH_PRIMES[1])
-                ^ v[2].wrapping_mul(HASH_PRIMES[2]))
-                & (table as u32 - 1)
+            (terms[0][b0] ^ terms[1][b1] ^ terms[2][b2]) & mask
         };
         idx[corner] = (offset + row) as i32;
-        w[corner] = weight;
+        w[corner] = wa[0][b0] * wa[1][b1] * wa[2][b2];
     }
 }
 
@@ -194,6 +200,63 @@ mod tests {
         // Coarsest level is dense: a vertex has the analytic row.
         assert!((cfg.resolution(0) as u64 + 1).pow(3) <= cfg.table_size() as u64);
         assert_eq!(lu.indices[0], 0);
+    }
+
+    /// The rows and weights vertex by vertex, as the definition reads.
+    fn lookup_by_vertex(
+        config: &GridConfig,
+        l: usize,
+        (n, dense): (u32, bool),
+        p: &[f32],
+    ) -> ([i32; 8], [f32; 8]) {
+        let table = config.table_size();
+        let x: [f32; 3] = std::array::from_fn(|a| p[a].clamp(0.0, 1.0) * n as f32);
+        let cell: [u32; 3] = std::array::from_fn(|a| (x[a] as u32).min(n - 1));
+        let frac: [f32; 3] = std::array::from_fn(|a| (x[a] - cell[a] as f32).clamp(0.0, 1.0));
+        let (mut idx, mut w) = ([0i32; 8], [0f32; 8]);
+        for corner in 0..8 {
+            let mut weight = 1.0f32;
+            let mut v = [0u32; 3];
+            for a in 0..3 {
+                let bit = (corner >> a) & 1;
+                v[a] = cell[a] + bit as u32;
+                weight *= if bit == 1 { frac[a] } else { 1.0 - frac[a] };
+            }
+            let row = if dense {
+                let side = n + 1;
+                v[0] + side * (v[1] + side * v[2])
+            } else {
+                (v[0].wrapping_mul(HASH_PRIMES[0])
+                    ^ v[1].wrapping_mul(HASH_PRIMES[1])
+                    ^ v[2].wrapping_mul(HASH_PRIMES[2]))
+                    & (table as u32 - 1)
+            };
+            idx[corner] = ((l * table) as u32 + row) as i32;
+            w[corner] = weight;
+        }
+        (idx, w)
+    }
+
+    #[test]
+    fn lookups_equal_the_vertex_by_vertex_definition_bit_for_bit() {
+        let cfg = GridConfig::default();
+        let levels = level_info(&cfg);
+        assert!(levels.iter().any(|l| l.1) && levels.iter().any(|l| !l.1));
+        let mut rng = crate::rng::SplitMix64::new(3);
+        for _ in 0..2000 {
+            let p = [
+                rng.uniform(-0.1, 1.1),
+                rng.uniform(0.0, 1.0),
+                rng.uniform(0.0, 1.0),
+            ];
+            for (l, &level) in levels.iter().enumerate() {
+                let (mut idx, mut w) = ([0i32; 8], [0f32; 8]);
+                lookup_level(&cfg, l, level, &p, &mut idx, &mut w);
+                let (ri, rw) = lookup_by_vertex(&cfg, l, level, &p);
+                assert_eq!(idx, ri, "{p:?} level {l}");
+                assert_eq!(w.map(f32::to_bits), rw.map(f32::to_bits), "{p:?} level {l}");
+            }
+        }
     }
 
     #[test]

@@ -70,6 +70,35 @@ impl Engine {
         }
     }
 
+    /// Whether this engine has a device to run on here (see [`Backend::check_device`]).
+    pub fn check_device(self) -> Result<(), ModelError> {
+        match self {
+            Engine::Fused => Ok(()),
+            Engine::Burn(b) => b.check_device().map_err(|why| ModelError::NoDevice {
+                engine: b.name(),
+                why,
+            }),
+        }
+    }
+
+    /// The engines this build has that can run here: [`Engine::available`] less GPU backends
+    /// without a device. Under CI (`CI=true`) every compiled-in engine must run: a missing
+    /// device panics, naming it, so CI never passes without executing the GPU code path.
+    pub fn usable() -> Vec<Engine> {
+        let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+        Engine::available()
+            .into_iter()
+            .filter(|e| match e.check_device() {
+                Ok(()) => true,
+                Err(err) if ci => panic!("CI=true, but {err}"),
+                Err(err) => {
+                    eprintln!("skipping engine `{}`: {err}", e.name());
+                    false
+                }
+            })
+            .collect()
+    }
+
     /// Whether this engine runs on a GPU (a burn GPU backend).
     pub fn is_gpu(self) -> bool {
         matches!(self, Engine::Burn(Backend::Wgpu | Backend::Cuda))
@@ -122,6 +151,7 @@ impl Engine {
             ));
         }
         self.supports(&spec.config)?;
+        self.check_device()?;
         Ok(match self {
             Engine::Fused => Box::new(FusedTrainer::new(
                 config.clone(),
@@ -141,6 +171,7 @@ impl Engine {
         weights: Vec<NamedWeight>,
     ) -> Result<Box<dyn Field>, ModelError> {
         self.supports(&spec.config)?;
+        self.check_device()?;
         Ok(match self {
             Engine::Fused => Box::new(FusedField::from_weights(spec, weights)?),
             Engine::Burn(b) => Box::new(burn::RadianceField::from_weights(

@@ -18,12 +18,19 @@ pub enum ModelError {
     /// Weight rows that do not fit the field spec.
     #[error("{0}")]
     Weights(String),
+    /// A GPU backend has no device here.
+    #[error(
+        "`backend: {engine}` has no device here: {why} (install its driver, or use \
+         `backend: fused` on the CPU)"
+    )]
+    NoDevice { engine: &'static str, why: String },
 }
 
 impl From<ModelError> for StageError {
     fn from(e: ModelError) -> Self {
         match e {
             ModelError::Weights(m) => StageError::Input(format!("table `weights`: {m}")),
+            e @ ModelError::NoDevice { .. } => StageError::Failed(e.to_string()),
             other => StageError::Params(other.to_string()),
         }
     }

@@ -7,11 +7,10 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite_ray, march_step, Composite, Scratch, EARLY_STOP_T};
-use super::field::{Field, FieldSamples, Heads};
-use crate::intervals::RayPlan;
+use super::composite::{Composite, Compositor, RaySums};
+use super::field::{Field, Heads};
 use crate::labels;
-use crate::sampling::{self, PlannedImage, Rays, SamplingParams};
+use crate::sampling::{self, Intervals, PlannedImage, SamplingParams, StoredRays};
 use crate::stage::{Result, StageError};
 
 /// What rendering needs besides the rays.
@@ -20,6 +19,11 @@ pub struct Renderer<'a> {
     pub sampling: &'a SamplingParams,
     /// Rays evaluated per field call.
     pub chunk: usize,
+    /// The heads evaluated (without colour the colour map is the sky colour).
+    pub heads: Heads,
+    /// Render every second pixel first and the rest only where those disagree (see
+    /// [`render_image`]); `false` renders every pixel.
+    pub adaptive: bool,
 }
 
 /// The rendered maps of one image, row-major.
@@ -39,7 +43,8 @@ pub struct ImageMaps {
     pub depth: Vec<f32>,
     /// Probability of the argmax class.
     pub confidence: Vec<f32>,
-    /// Rendered colour, the remainder filled with the sky colour.
+    /// Rendered colour, the remainder filled with the sky colour; empty without the colour
+    /// head.
     pub rgb: Vec<u8>,
 }
 
@@ -54,6 +59,13 @@ pub enum SkyColour<'a> {
 
 /// Renders one image: its rays, with the plan of each pixel, and its frame and camera id.
 /// Returns the maps and the sky colour used.
+///
+/// With [`Renderer::adaptive`], only every second pixel of every second row (and the last row
+/// and column) is rendered first; every other pixel is rendered too unless the four rendered
+/// pixels around it have its panoptic and fixed-field labels and it crosses the same primitives
+/// as they do, in which case it takes their labels and an interpolation of their depth,
+/// confidence and colour. Labels change only inside a cell of four agreeing pixels (a detail of
+/// the learned field finer than two pixels, within one primitive).
 pub fn render_image(
     r: &Renderer,
     rays: &PlannedImage,
@@ -61,17 +73,21 @@ pub fn render_image(
     camera: u8,
     sky: SkyColour,
 ) -> Result<(ImageMaps, [f32; 3])> {
-    let (field, sampling, prims) = (r.field, r.sampling, rays.prims);
-    let (c_n, t_n) = (prims.classes.len(), prims.things.len());
     let (width, height) = (rays.cam.width, rays.cam.height);
     let n = (width * height) as usize;
     let sky_label = labels::SKY;
-    let mut semantic = vec![sky_label; n];
-    let mut fixed = vec![sky_label; n];
-    let mut instance = vec![sky_label as u16 * labels::INSTANCE_FACTOR as u16; n];
-    let mut depth = vec![0f32; n];
-    let mut confidence = vec![1f32; n];
-    let mut rgb = vec![0u8; n * 3];
+    let mut maps = ImageMaps {
+        frame,
+        camera,
+        width,
+        height,
+        semantic: vec![sky_label; n],
+        fixed: vec![sky_label; n],
+        instance: vec![sky_label as u16 * labels::INSTANCE_FACTOR as u16; n],
+        depth: vec![0f32; n],
+        confidence: vec![1f32; n],
+        rgb: vec![0u8; n * 3],
+    };
     let sky_ids: Vec<usize> = (0..n).filter(|&p| !rays.hits_anything(p)).collect();
     let sky_rgb = match sky {
         SkyColour::Fixed(c) => c,
@@ -92,155 +108,240 @@ pub fn render_image(
         }
     };
     for &p in &sky_ids {
-        for k in 0..3 {
-            rgb[p * 3 + k] = (sky_rgb[k] * 255.0).round() as u8;
+        for (out, v) in maps.rgb[p * 3..p * 3 + 3].iter_mut().zip(sky_rgb) {
+            *out = (v * 255.0).round() as u8;
         }
     }
-    let hit_ids: Vec<u32> = (0..n as u32)
+    if !r.adaptive {
+        let all: Vec<u32> = (0..n as u32)
+            .filter(|&p| rays.hits_anything(p as usize))
+            .collect();
+        render_pixels(r, rays, &all, sky_rgb, &mut maps)?;
+        if !r.heads.rgb {
+            maps.rgb = Vec::new();
+        }
+        return Ok((maps, sky_rgb));
+    }
+    let (xs, ys) = (coarse(width), coarse(height));
+    let is_coarse =
+        |x: u32, y: u32| (x % 2 == 0 || x == width - 1) && (y % 2 == 0 || y == height - 1);
+    let first: Vec<u32> = ys
+        .iter()
+        .flat_map(|&y| xs.iter().map(move |&x| y * width + x))
         .filter(|&p| rays.hits_anything(p as usize))
         .collect();
-    // Chunks in parallel (each samples, marches and composites its rays), so the serial
-    // parts of one chunk overlap with the others' field evaluations.
-    let chunks: Vec<&[u32]> = hit_ids.chunks(r.chunk).collect();
+    render_pixels(r, rays, &first, sky_rgb, &mut maps)?;
+    let mut rest = Vec::new();
+    for y in 0..height {
+        let (y0, y1) = cell(y, height);
+        for x in 0..width {
+            if is_coarse(x, y) {
+                continue;
+            }
+            let (x0, x1) = cell(x, width);
+            let p = (y * width + x) as usize;
+            let corners = [
+                (y0 * width + x0) as usize,
+                (y0 * width + x1) as usize,
+                (y1 * width + x0) as usize,
+                (y1 * width + x1) as usize,
+            ];
+            let same = corners.iter().all(|&c| {
+                maps.instance[c] == maps.instance[corners[0]]
+                    && maps.fixed[c] == maps.fixed[corners[0]]
+                    && rays.intervals(c as u32).prim == rays.intervals(p as u32).prim
+            });
+            if !same {
+                rest.push(p as u32);
+                continue;
+            }
+            let fx = if x1 > x0 {
+                (x - x0) as f32 / (x1 - x0) as f32
+            } else {
+                0.0
+            };
+            let fy = if y1 > y0 {
+                (y - y0) as f32 / (y1 - y0) as f32
+            } else {
+                0.0
+            };
+            let w = [
+                (1.0 - fx) * (1.0 - fy),
+                fx * (1.0 - fy),
+                (1.0 - fx) * fy,
+                fx * fy,
+            ];
+            interpolate(&mut maps, p, &corners, &w);
+        }
+    }
+    render_pixels(r, rays, &rest, sky_rgb, &mut maps)?;
+    if !r.heads.rgb {
+        maps.rgb = Vec::new();
+    }
+    Ok((maps, sky_rgb))
+}
+
+/// The rendered columns (or rows) of a side of `n` pixels: the even ones and the last.
+fn coarse(n: u32) -> Vec<u32> {
+    let mut v: Vec<u32> = (0..n).step_by(2).collect();
+    if n > 0 && (n - 1) % 2 == 1 {
+        v.push(n - 1);
+    }
+    v
+}
+
+/// The rendered columns (or rows) around `x` on a side of `n` pixels.
+fn cell(x: u32, n: u32) -> (u32, u32) {
+    let x0 = x - x % 2;
+    let x1 = (x0 + 2).min(n - 1);
+    (x0, x1)
+}
+
+/// Pixel `p` from the rendered pixels `corners` (which share its labels) with bilinear weights
+/// `w`: their labels, and the weighted depth (over the corners with a depth), confidence and
+/// colour.
+fn interpolate(maps: &mut ImageMaps, p: usize, corners: &[usize; 4], w: &[f32; 4]) {
+    let c0 = corners[0];
+    maps.semantic[p] = maps.semantic[c0];
+    maps.fixed[p] = maps.fixed[c0];
+    maps.instance[p] = maps.instance[c0];
+    let (mut d, mut dw, mut conf) = (0f32, 0f32, 0f32);
+    let mut rgb = [0f32; 3];
+    for (&c, &wc) in corners.iter().zip(w) {
+        if maps.depth[c] > 0.0 {
+            d += wc * maps.depth[c];
+            dw += wc;
+        }
+        conf += wc * maps.confidence[c];
+        for (k, v) in rgb.iter_mut().enumerate() {
+            *v += wc * maps.rgb[c * 3 + k] as f32;
+        }
+    }
+    maps.depth[p] = if dw > 0.0 { d / dw } else { 0.0 };
+    maps.confidence[p] = conf;
+    for (k, v) in rgb.iter().enumerate() {
+        maps.rgb[p * 3 + k] = v.round().clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// Renders pixels `ids` (which cross primitives) into `maps`: chunks of rays in parallel, each
+/// sampled, marched and composited, so the serial parts of one chunk overlap with the others'
+/// field evaluations.
+fn render_pixels(
+    r: &Renderer,
+    rays: &PlannedImage,
+    ids: &[u32],
+    sky_rgb: [f32; 3],
+    maps: &mut ImageMaps,
+) -> Result<()> {
+    let prims = rays.prims;
+    let chunks: Vec<&[u32]> = ids.chunks(r.chunk).collect();
     let composited: Vec<Vec<(Composite, f32)>> = chunks
         .par_iter()
-        .map(|chunk| composite_chunk(rays, sampling, field, chunk, c_n, t_n))
+        .map(|chunk| composite_rays(r.field, r.sampling, r.heads, rays, chunk))
         .collect::<Result<_>>()?;
     for (chunk, results) in chunks.iter().zip(composited) {
         for (&px, (c, z_scale)) in chunk.iter().zip(results) {
             let px = px as usize;
             let label = prims.classes[c.class];
-            semantic[px] = label;
-            fixed[px] = prims.classes[c.fixed_class];
+            maps.semantic[px] = label;
+            maps.fixed[px] = prims.classes[c.fixed_class];
             let inst = c.thing.map_or(0, |k| prims.things[k].1.min(999));
-            instance[px] = (label as u32 * labels::INSTANCE_FACTOR + inst) as u16;
-            depth[px] = if c.opacity > 0.5 { c.t * z_scale } else { 0.0 };
-            confidence[px] = c.confidence;
+            maps.instance[px] = (label as u32 * labels::INSTANCE_FACTOR + inst) as u16;
+            maps.depth[px] = if c.opacity > 0.5 { c.t * z_scale } else { 0.0 };
+            maps.confidence[px] = c.confidence;
             let rem = (1.0 - c.opacity).max(0.0);
-            for k in 0..3 {
-                rgb[px * 3 + k] =
-                    ((c.rgb[k] + rem * sky_rgb[k]).clamp(0.0, 1.0) * 255.0).round() as u8;
+            for (k, out) in maps.rgb[px * 3..px * 3 + 3].iter_mut().enumerate() {
+                *out = ((c.rgb[k] + rem * sky_rgb[k]).clamp(0.0, 1.0) * 255.0).round() as u8;
             }
         }
     }
-    let maps = ImageMaps {
-        frame,
-        camera,
-        width,
-        height,
-        semantic,
-        fixed,
-        instance,
-        depth,
-        confidence,
-        rgb,
-    };
-    Ok((maps, sky_rgb))
+    Ok(())
 }
 
-/// Samples, evaluates and composites the rays `chunk` of `rays`; each with its z scale.
-fn composite_chunk(
-    rays: &PlannedImage,
-    sampling: &SamplingParams,
+/// Samples, evaluates and composites the rays `chunk` of `rays` with `field`'s `heads`; each with
+/// its z scale.
+///
+/// The field is evaluated front to back in rounds of a few samples per ray, each round
+/// composited at once, and a ray leaves once the compositor says it is saturated or its labels
+/// are settled ([`Compositor::settled`]): the samples the rest of a ray holds cannot change its
+/// labels, so they are never evaluated.
+pub fn composite_rays(
     field: &dyn Field,
+    sampling: &SamplingParams,
+    heads: Heads,
+    rays: &dyn StoredRays,
     chunk: &[u32],
-    c_n: usize,
-    t_n: usize,
 ) -> Result<Vec<(Composite, f32)>> {
     let b = sampling::sample_for_render(rays, chunk, sampling)?;
-    let FieldSamples {
-        sigma,
-        rgb: col,
-        logits,
-    } = evaluate_marching(field, &b.positions, &b.dirs, &b.deltas, b.samples, c_n)?;
-    let s_n = b.samples;
-    let mut scratch = Scratch::new(c_n, t_n);
-    let mut buf = RayPlan::default();
-    chunk
-        .iter()
-        .enumerate()
-        .map(|(i, &px)| {
-            let ray = rays.ray(px, &mut buf)?;
-            let rs = i * s_n..(i + 1) * s_n;
-            let c = composite_ray(
-                rays.prims,
-                &ray.intervals,
-                &b.t[rs.clone()],
-                &b.deltas[rs.clone()],
-                &sigma[rs.clone()],
-                &col[rs.start * 3..rs.end * 3],
-                &logits[rs.start * c_n..rs.end * c_n],
-                &mut scratch,
-            );
-            Ok((c, b.z_scale[i]))
-        })
-        .collect()
-}
-
-/// Samples per ray evaluated per round of [`evaluate_marching`].
-const MARCH_ROUND: usize = 8;
-
-/// The field at the samples (`positions` `[R, S, 3]`, `deltas` `[R, S]`, `directions` `[R, 3]`)
-/// that compositing reads: front to back in rounds of [`MARCH_ROUND`] samples per ray, dropping
-/// a ray once its transmittance is below [`EARLY_STOP_T`] (the compositor stops there too, and
-/// runs the same sums in the same order, so it never reads a sample left out; those stay 0).
-/// The field's outputs at a sample do not depend on which other samples share the call.
-pub fn evaluate_marching(
-    field: &dyn Field,
-    positions: &[f32],
-    directions: &[f32],
-    deltas: &[f32],
-    samples: usize,
-    classes: usize,
-) -> Result<FieldSamples> {
-    let rays = directions.len() / 3;
-    let n = rays * samples;
-    let mut out = FieldSamples {
-        sigma: vec![0.0; n],
-        rgb: vec![0.0; n * 3],
-        logits: vec![0.0; n * classes],
-    };
-    let mut log_t = vec![0f32; rays];
-    let mut alive: Vec<usize> = (0..rays).collect();
+    let prims = rays.prims();
+    let (s_n, c_n) = (b.samples, prims.classes.len());
+    let mut comp = Compositor::new(prims);
+    let width = comp.width();
+    let mut sums = vec![0f32; chunk.len() * width];
+    let mut state = vec![RaySums::default(); chunk.len()];
+    let intervals: Vec<Intervals> = chunk.iter().map(|&r| rays.intervals(r)).collect();
+    let mut alive: Vec<usize> = (0..chunk.len()).collect();
     let (mut pos, mut dirs) = (Vec::new(), Vec::new());
     let mut s0 = 0;
-    while s0 < samples && !alive.is_empty() {
-        let k = MARCH_ROUND.min(samples - s0);
+    for &k in MARCH_ROUNDS.iter().chain(std::iter::repeat(&MARCH_ROUND)) {
+        if s0 >= s_n || alive.is_empty() {
+            break;
+        }
+        let k = k.min(s_n - s0);
         pos.clear();
         dirs.clear();
         for &r in &alive {
-            pos.extend_from_slice(&positions[(r * samples + s0) * 3..(r * samples + s0 + k) * 3]);
-            dirs.extend_from_slice(&directions[r * 3..r * 3 + 3]);
+            pos.extend_from_slice(&b.positions[(r * s_n + s0) * 3..(r * s_n + s0 + k) * 3]);
+            dirs.extend_from_slice(&b.dirs[r * 3..r * 3 + 3]);
         }
-        let got = field.evaluate(&pos, &dirs, k, Heads::ALL);
+        let got = field.evaluate(&pos, &dirs, k, heads);
         let m = alive.len() * k;
-        if got.sigma.len() != m || got.rgb.len() != m * 3 || got.logits.len() != m * classes {
+        if got.sigma.len() != m
+            || got.logits.len() != m * c_n
+            || (heads.rgb && got.rgb.len() != m * 3)
+        {
             return Err(StageError::Failed(
                 "the field returned outputs of unexpected size".into(),
             ));
         }
         for (a, &r) in alive.iter().enumerate() {
-            let (src, dst) = (a * k, r * samples + s0);
-            out.sigma[dst..dst + k].copy_from_slice(&got.sigma[src..src + k]);
-            out.rgb[dst * 3..(dst + k) * 3].copy_from_slice(&got.rgb[src * 3..(src + k) * 3]);
-            out.logits[dst * classes..(dst + k) * classes]
-                .copy_from_slice(&got.logits[src * classes..(src + k) * classes]);
-        }
-        // Transmittance after this round, by the compositor's own step.
-        alive.retain(|&r| {
-            let lt = &mut log_t[r];
-            let round = r * samples + s0..r * samples + s0 + k;
-            for (&delta, &sigma) in deltas[round.clone()].iter().zip(&out.sigma[round]) {
-                if delta <= 0.0 {
-                    continue;
-                }
-                if march_step(lt, sigma, delta).is_none() {
-                    return false;
+            let ray_sums = &mut sums[r * width..(r + 1) * width];
+            for j in 0..k {
+                let (i, g) = (r * s_n + s0 + j, a * k + j);
+                let rgb = if heads.rgb {
+                    &got.rgb[g * 3..g * 3 + 3]
+                } else {
+                    &[][..]
+                };
+                let logits = &got.logits[g * c_n..(g + 1) * c_n];
+                let (t, d) = (b.t[i], b.deltas[i]);
+                if !comp.add(
+                    &mut state[r],
+                    ray_sums,
+                    &intervals[r],
+                    t,
+                    d,
+                    got.sigma[g],
+                    rgb,
+                    logits,
+                ) {
+                    break;
                 }
             }
-            lt.exp() >= EARLY_STOP_T
-        });
+        }
+        alive.retain(|&r| !comp.settled(&state[r], &sums[r * width..(r + 1) * width]));
         s0 += k;
     }
-    Ok(out)
+    Ok((0..chunk.len())
+        .map(|r| {
+            let c = comp.finish(&state[r], &mut sums[r * width..(r + 1) * width]);
+            (c, b.z_scale[r])
+        })
+        .collect())
 }
+
+/// Samples per ray of the first rounds of [`composite_rays`]: small, since most rays settle
+/// within their first few samples; then [`MARCH_ROUND`] at a time.
+const MARCH_ROUNDS: [usize; 2] = [4, 4];
+const MARCH_ROUND: usize = 8;

@@ -6,12 +6,13 @@
 use serde_json::Value;
 
 use super::burn::Backend;
-use super::composite::{composite_ray, Scratch};
+use super::composite::{composite_ray, LABEL_STOP_T};
 use super::config::{FieldConfig, FieldSpec, LossWeights, TrainConfig};
 use super::engine::Engine;
 use super::error::TrainError;
 use super::field::{Field, Heads};
 use super::loss::{LossTerm, LossTerms};
+use super::maps::composite_rays;
 use super::params::{self, NamedWeight};
 use super::testing::{lively, toy_batch, toy_config, toy_sampling, toy_scene, toy_set, toy_spec};
 use super::train::fit;
@@ -23,7 +24,7 @@ fn reference() -> Engine {
 }
 
 fn others() -> Vec<Engine> {
-    Engine::available()
+    Engine::usable()
         .into_iter()
         .filter(|&e| e != reference())
         .collect()
@@ -65,7 +66,6 @@ fn render(field: &dyn Field, set: &RaySet) -> Vec<(usize, f32, Option<usize>)> {
     let b = sample_batch(set, &ids, &toy_sampling(), None).unwrap();
     let out = field.evaluate(&b.positions, &b.dirs, b.samples, Heads::ALL);
     let (s, c) = (b.samples, set.prims.classes.len());
-    let mut scratch = Scratch::new(c, set.prims.things.len());
     (0..b.rays)
         .map(|i| {
             let r = i * s..(i + 1) * s;
@@ -77,7 +77,6 @@ fn render(field: &dyn Field, set: &RaySet) -> Vec<(usize, f32, Option<usize>)> {
                 &out.sigma[r.clone()],
                 &out.rgb[r.start * 3..r.end * 3],
                 &out.logits[r.start * c..r.end * c],
-                &mut scratch,
             );
             (px.class, px.t, px.thing)
         })
@@ -309,7 +308,7 @@ fn every_engine_lowers_every_loss_and_renders_the_labels() {
         ..toy_config()
     };
     let set = toy_set();
-    for engine in Engine::available() {
+    for engine in Engine::usable() {
         if engine.supports(&config.field).is_err() {
             continue;
         }
@@ -354,7 +353,7 @@ fn every_engine_trains_reproducibly_from_the_seed() {
         ..toy_config()
     };
     let spec = spec_for(&config);
-    for engine in Engine::available() {
+    for engine in Engine::usable() {
         let a = train(engine, &config, params::initial(&spec), 3);
         let b = train(engine, &config, params::initial(&spec), 3);
         assert_eq!(a, b, "{engine}: same seed, same bytes");
@@ -370,7 +369,7 @@ fn every_engine_names_a_non_finite_loss_and_keeps_its_weights() {
     let mut rows = params::initial(&spec);
     let k = params::index(&rows, "semantic.layers.1.bias").unwrap();
     rows[k].values[0] = f32::NAN;
-    for engine in Engine::available() {
+    for engine in Engine::usable() {
         let mut t = engine
             .trainer_from(&config, spec.clone(), rows.clone())
             .unwrap();
@@ -403,7 +402,7 @@ fn every_engine_trains_through_huge_densities_and_tiny_deltas() {
     for d in data.samples.deltas.iter_mut().step_by(2) {
         *d = 1e-9;
     }
-    for engine in Engine::available() {
+    for engine in Engine::usable() {
         for shift in [1e10f32, -1e4] {
             let mut config = toy_config();
             config.field.density_shift = shift;
@@ -425,7 +424,7 @@ fn every_engine_trains_through_huge_densities_and_tiny_deltas() {
 fn every_engine_rejects_bad_batches_and_configs() {
     let mut data = toy_scene();
     data.targets.labels[3] = 7;
-    for engine in Engine::available() {
+    for engine in Engine::usable() {
         let mut t = engine.trainer(&toy_config(), toy_spec()).unwrap();
         assert!(
             matches!(t.step(&data), Err(TrainError::Batch(m)) if m.contains("label 7")),
@@ -481,16 +480,19 @@ impl Field for Counting<'_> {
     }
 }
 
-/// Rendering marches the field front to back and leaves a ray once it is opaque: every engine
-/// composites exactly what evaluating every sample gives, and dense fields cost fewer samples.
+/// Rendering marches the field front to back and leaves a ray once it is opaque or its labels
+/// are settled: every engine renders exactly the labels that compositing every sample gives,
+/// opacity, depth and confidence within the weight left behind ([`LABEL_STOP_T`]), and dense
+/// fields cost fewer samples.
 #[test]
-fn marching_rays_composite_exactly_like_evaluating_every_sample() {
+fn marching_rays_render_the_labels_of_evaluating_every_sample() {
     let set = toy_set();
     let ids: Vec<u32> = (0..set.origin.len() as u32).collect();
     let b = sample_batch(&set, &ids, &toy_sampling(), None).unwrap();
     let (s, c) = (b.samples, set.prims.classes.len());
-    for engine in Engine::available() {
-        for shift in [-1.0f32, 10.0, 30.0] {
+    let mut settled_early = 0;
+    for engine in Engine::usable() {
+        for shift in [-1.0f32, 2.0, 10.0, 30.0] {
             let config = TrainConfig {
                 field: FieldConfig {
                     density_shift: shift,
@@ -510,39 +512,50 @@ fn marching_rays_composite_exactly_like_evaluating_every_sample() {
                 samples: 0.into(),
             };
             let full = field.evaluate(&b.positions, &b.dirs, s, Heads::ALL);
+            let exact: Vec<_> = (0..b.rays)
+                .map(|i| {
+                    let r = i * s..(i + 1) * s;
+                    composite_ray(
+                        &set.prims,
+                        &set.intervals(i),
+                        &b.t[r.clone()],
+                        &b.deltas[r.clone()],
+                        &full.sigma[r.clone()],
+                        &full.rgb[r.start * 3..r.end * 3],
+                        &full.logits[r.start * c..r.end * c],
+                    )
+                })
+                .collect();
             let marched =
-                super::maps::evaluate_marching(&counting, &b.positions, &b.dirs, &b.deltas, s, c)
-                    .unwrap();
-            let composite = |out: &super::field::FieldSamples| {
-                let mut scratch = Scratch::new(c, set.prims.things.len());
-                (0..b.rays)
-                    .map(|i| {
-                        let r = i * s..(i + 1) * s;
-                        composite_ray(
-                            &set.prims,
-                            &set.intervals(i),
-                            &b.t[r.clone()],
-                            &b.deltas[r.clone()],
-                            &out.sigma[r.clone()],
-                            &out.rgb[r.start * 3..r.end * 3],
-                            &out.logits[r.start * c..r.end * c],
-                            &mut scratch,
-                        )
-                    })
-                    .collect::<Vec<_>>()
-            };
-            assert_eq!(
-                composite(&marched),
-                composite(&full),
-                "{engine}, shift {shift}"
-            );
+                composite_rays(&counting, &toy_sampling(), Heads::ALL, &set, &ids).unwrap();
+            for (i, ((m, z), e)) in marched.iter().zip(&exact).enumerate() {
+                let at = format!("{engine}, shift {shift}, ray {i}");
+                assert_eq!(
+                    (m.class, m.fixed_class, m.thing),
+                    (e.class, e.fixed_class, e.thing),
+                    "{at}"
+                );
+                assert_eq!(*z, set.z_scale[i], "{at}");
+                // What the march left out weighs at most LABEL_STOP_T.
+                let left = e.opacity - m.opacity;
+                assert!((0.0..=LABEL_STOP_T).contains(&left), "{at}: {left}");
+                assert!(
+                    (m.confidence - e.confidence).abs() <= LABEL_STOP_T * 1.01,
+                    "{at}"
+                );
+                if e.opacity > 0.5 {
+                    // The expected distance moves by at most the left-out weight times the
+                    // ray's extent (sky end at 7).
+                    assert!((m.t - e.t).abs() <= 7.0 * left / m.opacity + 1e-4, "{at}");
+                }
+                settled_early += usize::from(left > 0.0);
+            }
             let asked = counting.samples.into_inner();
             if shift > 20.0 {
                 // Density ~30 /m: opaque after a few samples of the road or car (12 per metre),
-                // so the first round of 8 ends those rays and their sky samples are never
-                // evaluated.
+                // so the first rounds end those rays and their sky samples are never evaluated.
                 assert!(
-                    asked * 4 < b.rays * s * 3,
+                    asked * 2 < b.rays * s,
                     "{engine}: {asked} of {} samples evaluated in a dense field",
                     b.rays * s
                 );
@@ -551,4 +564,5 @@ fn marching_rays_composite_exactly_like_evaluating_every_sample() {
             }
         }
     }
+    assert!(settled_early > 0, "no ray stopped on settled labels");
 }

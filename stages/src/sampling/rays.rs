@@ -169,6 +169,23 @@ pub trait Rays: Sync {
     fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>>;
 }
 
+/// Rays whose intervals are held (not traced on demand): a renderer reads many at once.
+pub trait StoredRays: Rays {
+    fn intervals(&self, r: u32) -> Intervals<'_>;
+}
+
+impl StoredRays for RaySet {
+    fn intervals(&self, r: u32) -> Intervals<'_> {
+        RaySet::intervals(self, r as usize)
+    }
+}
+
+impl StoredRays for PlannedImage<'_> {
+    fn intervals(&self, p: u32) -> Intervals<'_> {
+        PlannedImage::intervals(self, p)
+    }
+}
+
 /// The origin, unit direction and z scale of pixel `(x, y)` of `cam` as f32 (computed in f64).
 pub fn pixel_ray(cam: &geometry::Camera, x: u32, y: u32) -> ([f32; 3], [f32; 3], f32) {
     let o = cam.centre();
@@ -251,6 +268,8 @@ pub struct PlannedImage<'a> {
     plan: &'a ImagePlan,
     /// Start of each pixel's intervals in the plan.
     offsets: Vec<u32>,
+    /// The plan's exits, at least the entries (as every sampler input).
+    t_out: Vec<f32>,
 }
 
 impl<'a> PlannedImage<'a> {
@@ -281,12 +300,32 @@ impl<'a> PlannedImage<'a> {
                 plan.t_in.len()
             )));
         }
+        let t_out = plan
+            .t_out
+            .iter()
+            .zip(&plan.t_in)
+            .map(|(&o, &i)| o.max(i))
+            .collect();
         Ok(Self {
             prims,
             cam,
             plan,
             offsets,
+            t_out,
         })
+    }
+
+    /// The intervals of pixel `p`.
+    pub fn intervals(&self, p: u32) -> Intervals<'_> {
+        let p = p as usize;
+        let (a, b) = (self.offsets[p] as usize, self.offsets[p + 1] as usize);
+        let (s0, s1) = (self.plan.sky_t0[p], self.plan.sky_t1[p]);
+        Intervals {
+            t_in: &self.plan.t_in[a..b],
+            t_out: &self.t_out[a..b],
+            prim: &self.plan.prim[a..b],
+            sky: [s0, s1.max(s0)],
+        }
     }
 
     /// Whether pixel `p` crosses any primitive.
@@ -302,31 +341,14 @@ impl Rays for PlannedImage<'_> {
     fn len(&self) -> usize {
         self.plan.hits.len()
     }
-    fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>> {
-        let (p, w) = (r as usize, self.cam.width);
+    fn ray<'s>(&'s self, r: u32, _: &'s mut RayPlan) -> Result<SceneRay<'s>> {
+        let w = self.cam.width;
         let (origin, dir, z_scale) = pixel_ray(self.cam, r % w, r / w);
-        let (a, b) = (self.offsets[p] as usize, self.offsets[p + 1] as usize);
-        // t_out >= t_in, as every sampler input.
-        buf.t_in.clear();
-        buf.t_out.clear();
-        buf.t_in.extend_from_slice(&self.plan.t_in[a..b]);
-        buf.t_out.extend(
-            self.plan.t_out[a..b]
-                .iter()
-                .zip(&buf.t_in)
-                .map(|(&o, &i)| o.max(i)),
-        );
-        let (s0, s1) = (self.plan.sky_t0[p], self.plan.sky_t1[p]);
         Ok(SceneRay {
             origin,
             dir,
             z_scale,
-            intervals: Intervals {
-                t_in: &buf.t_in,
-                t_out: &buf.t_out,
-                prim: &self.plan.prim[a..b],
-                sky: [s0, s1.max(s0)],
-            },
+            intervals: self.intervals(r),
             targets: RayTargets::NONE,
         })
     }

@@ -9,7 +9,9 @@
 //! Training wraps the device with autodiff ([`Backend::train_device`]); inference uses the plain
 //! device ([`Backend::device`]).
 
-use burn::tensor::Device;
+use std::sync::OnceLock;
+
+use burn::tensor::{Device, Tensor};
 
 /// A burn backend this build can run the field on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -97,6 +99,49 @@ impl Backend {
     pub fn train_device(self) -> Device {
         self.device().autodiff()
     }
+
+    /// Whether this backend has a device to run on here (checked once per process): the CPU
+    /// backends always; a GPU backend needs its driver and a device (wgpu: a Vulkan, Metal or
+    /// DX12 adapter, on a machine without a GPU e.g. Mesa's llvmpipe from Debian's
+    /// `mesa-vulkan-drivers`; cuda: an NVIDIA GPU and driver). The error says what failed.
+    pub fn check_device(self) -> Result<(), String> {
+        static CHECKED: [OnceLock<Result<(), String>>; 4] = [
+            OnceLock::new(),
+            OnceLock::new(),
+            OnceLock::new(),
+            OnceLock::new(),
+        ];
+        match self {
+            Backend::Flex | Backend::NdArray => Ok(()),
+            Backend::Wgpu => CHECKED[2].get_or_init(|| probe(self)).clone(),
+            Backend::Cuda => CHECKED[3].get_or_init(|| probe(self)).clone(),
+        }
+    }
+}
+
+/// Runs a sum on `b`'s device; a missing driver or device panics inside the runtime, which is
+/// caught and named.
+fn probe(b: Backend) -> Result<(), String> {
+    if !Backend::available().contains(&b) {
+        return Err(format!("`{}` is not compiled in", b.name()));
+    }
+    let run = std::panic::catch_unwind(|| {
+        let t = Tensor::<1>::from_floats([1.0f32, 2.0].as_slice(), &b.device());
+        t.sum()
+            .into_data()
+            .try_to_vec::<f32>()
+            .map_err(|e| format!("{e:?}"))
+    });
+    match run {
+        Ok(Ok(v)) if v == [3.0] => Ok(()),
+        Ok(Ok(v)) => Err(format!("a test sum on `{}` gave {v:?}", b.name())),
+        Ok(Err(e)) => Err(e),
+        Err(panic) => Err(panic
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "the runtime panicked".into())),
+    }
 }
 
 impl Default for Backend {
@@ -110,6 +155,17 @@ impl Default for Backend {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cpu_backends_always_have_a_device_and_missing_ones_are_named() {
+        assert_eq!(Backend::REFERENCE.check_device(), Ok(()));
+        for b in [Backend::Wgpu, Backend::Cuda] {
+            if !Backend::available().contains(&b) {
+                let e = b.check_device().unwrap_err();
+                assert!(e.contains("not compiled in"), "{e}");
+            }
+        }
+    }
 
     #[test]
     fn default_backend_is_available_and_named() {

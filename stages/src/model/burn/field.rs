@@ -34,6 +34,9 @@ pub struct HashGrid {
     pub features: usize,
 }
 
+/// Corner reads per `select` call (see [`HashGrid::forward`]).
+const SELECT_ROWS: usize = 1 << 15;
+
 impl HashGrid {
     /// Interpolated features.
     ///
@@ -42,10 +45,24 @@ impl HashGrid {
     pub fn forward(&self, lookup: &GridLookup) -> Tensor<2> {
         let device = self.table.device();
         let rows = lookup.points * self.levels * 8;
-        let idx =
-            Tensor::<1, Int>::from_data(TensorData::new(lookup.indices.clone(), [rows]), &device);
         let w = Tensor::<2>::from_data(TensorData::new(lookup.weights.clone(), [rows, 1]), &device);
-        let corners = self.table.val().select(0, idx) * w; // [points*levels*8, F]
+        // Rows in parts of at most SELECT_ROWS: on wgpu (burn 0.22, cubecl 0.11) the gradient of
+        // `select` drops or garbles every read past the 65535th (one workgroup per read, and
+        // WebGPU allows at most 65535 per dimension), so a training batch (millions of corner
+        // reads) got a wrong grid gradient. Tested in `grid_gradient_counts_every_corner_read`.
+        let table = self.table.val();
+        let parts: Vec<Tensor<2>> = lookup
+            .indices
+            .chunks(SELECT_ROWS)
+            .map(|part| {
+                let idx = Tensor::<1, Int>::from_data(
+                    TensorData::new(part.to_vec(), [part.len()]),
+                    &device,
+                );
+                table.clone().select(0, idx)
+            })
+            .collect();
+        let corners = Tensor::cat(parts, 0) * w; // [points*levels*8, F]
         corners
             .reshape([lookup.points * self.levels, 8, self.features])
             .sum_dim(1) // [points*levels, 1, F]
@@ -301,6 +318,64 @@ mod tests {
     use super::*;
     use crate::model::burn::Backend;
     use crate::model::{FieldConfig, GridConfig};
+
+    /// Every corner read adds its weight times the output's gradient to its row, on every
+    /// backend this build has, past the 65535 reads where burn's wgpu `select` gradient breaks.
+    #[test]
+    fn grid_gradient_counts_every_corner_read() {
+        let (rows, features, points) = (4096usize, 2usize, 9000usize);
+        let reads = points * 8;
+        assert!(reads > 1 << 16);
+        let indices: Vec<i32> = (0..reads)
+            .map(|k| ((k * 7919 + k / 3) % rows) as i32)
+            .collect();
+        let weights: Vec<f32> = (0..reads).map(|k| ((k * 17) % 23) as f32 / 23.0).collect();
+        let c: Vec<f32> = (0..points * features)
+            .map(|i| ((i * 13) % 7) as f32 - 3.0)
+            .collect();
+        let mut want = vec![0f64; rows * features];
+        for k in 0..reads {
+            for f in 0..features {
+                want[indices[k] as usize * features + f] +=
+                    weights[k] as f64 * c[(k / 8) * features + f] as f64;
+            }
+        }
+        let lookup = crate::model::encoding::GridLookup {
+            points,
+            indices,
+            weights,
+        };
+        for b in Backend::available() {
+            if b.check_device().is_err() && !std::env::var("CI").is_ok_and(|v| v == "true") {
+                continue;
+            }
+            let d = b.train_device();
+            let table = Tensor::<2>::from_data(
+                TensorData::new(vec![0.5f32; rows * features], [rows, features]),
+                &d,
+            );
+            let grid = HashGrid {
+                table: Param::from_tensor(table),
+                levels: 1,
+                features,
+            };
+            let ct = Tensor::<2>::from_data(TensorData::new(c.clone(), [points, features]), &d);
+            let grads = (grid.forward(&lookup) * ct).sum().backward();
+            let got = grid
+                .table
+                .grad(&grads)
+                .unwrap()
+                .into_data()
+                .try_to_vec::<f32>()
+                .unwrap();
+            let bad = got
+                .iter()
+                .zip(&want)
+                .filter(|(g, w)| (**g as f64 - **w).abs() > 1e-3 * (1.0 + w.abs()))
+                .count();
+            assert_eq!(bad, 0, "{}: {bad} of {} table entries", b.name(), got.len());
+        }
+    }
 
     fn spec(config: FieldConfig) -> FieldSpec {
         FieldSpec {

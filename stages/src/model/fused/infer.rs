@@ -60,6 +60,7 @@ impl FusedField {
                     &directions[r0 * 3..r1 * 3],
                     samples,
                     heads,
+                    false,
                 );
                 sig.copy_from_slice(&w.sigma[..m]);
                 if let Some(col) = col {

@@ -65,6 +65,7 @@ impl Work {
             &s.directions[r0 * 3..r1 * 3],
             ns,
             heads,
+            true,
         );
         if heads.semantics {
             grow(&mut self.probs, n * c);

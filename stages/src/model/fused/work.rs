@@ -77,7 +77,9 @@ pub(super) fn sigmoid(x: f32) -> f32 {
 
 impl Work {
     /// Encoding, trunk, density and the requested heads for `positions` (`[n, 3]`) whose rays
-    /// (`directions`, `[n / samples, 3]`) have `samples` points each.
+    /// (`directions`, `[n / samples, 3]`) have `samples` points each; with `gradients`, also
+    /// the density's derivative the backward pass needs.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn forward_field(
         &mut self,
         f: &FusedField,
@@ -86,6 +88,7 @@ impl Work {
         directions: &[f32],
         samples: usize,
         heads: Heads,
+        gradients: bool,
     ) {
         let spec = &f.spec;
         let c = &spec.config;
@@ -153,11 +156,14 @@ impl Work {
         let width = 1 + c.geo_features;
         let trunk_out = &self.trunk[f.trunk.len() - 1];
         grow(&mut self.sigma, n);
-        grow(&mut self.dsigma, n);
         for i in 0..n {
-            let x = trunk_out[i * width] + c.density_shift;
-            self.sigma[i] = softplus(x);
-            self.dsigma[i] = sigmoid(x);
+            self.sigma[i] = softplus(trunk_out[i * width] + c.density_shift);
+        }
+        if gradients {
+            grow(&mut self.dsigma, n);
+            for i in 0..n {
+                self.dsigma[i] = sigmoid(trunk_out[i * width] + c.density_shift);
+            }
         }
         let geo = View {
             data: &trunk_out[1..],
