@@ -142,3 +142,84 @@ fn novel_views_are_rendered_and_exported() {
         "{err}"
     );
 }
+
+/// The GPU path through the whole pipeline (in CI on Mesa's llvmpipe, a Vulkan driver on the
+/// CPU): the tiny scene trained with `backend: wgpu` and rendered (on wgpu too: rendering follows
+/// a GPU training engine) gives the fused CPU engine's losses and labels. Tolerances: every
+/// logged loss of the first 10 steps within 1e-3 relative (float sums in another order, and
+/// llvmpipe flushes subnormals), and at least 97 % of the evaluated pixels with the same label
+/// after 40 steps (training amplifies those differences a little every step).
+#[cfg(feature = "wgpu")]
+#[test]
+fn the_wgpu_backend_trains_and_renders_like_the_cpu() {
+    use stages::model::{burn::Backend, Engine};
+    if !Engine::usable().contains(&Engine::Burn(Backend::Wgpu)) {
+        return; // Engine::usable said why; under CI=true it panics instead
+    }
+    let runs: Vec<(Workspace, Vec<f32>, Vec<Vec<u8>>)> = ["fused", "wgpu"]
+        .iter()
+        .map(|engine| {
+            let ws = Workspace::new(common::TINY_PIPELINE);
+            let set = format!("train.backend={engine}");
+            ws.run_ok(&["--until", "render", "--set", &set]);
+            let (code, out, err) = ws.cmd(
+                "show",
+                &[
+                    "train",
+                    "--table",
+                    "train_log",
+                    "--head",
+                    "10",
+                    "--set",
+                    &set,
+                ],
+            );
+            assert_eq!(code, 0, "{out}{err}");
+            let losses = losses_of(&out);
+            let (code, out, err) = ws.cmd("export", &["render", "--to", "render", "--set", &set]);
+            assert_eq!(code, 0, "{out}{err}");
+            let dir = ws.dir().join("render/semantic");
+            let mut files: Vec<_> = fs::read_dir(&dir)
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .collect();
+            files.sort();
+            let maps = files.iter().map(|f| gray8(f)).collect();
+            (ws, losses, maps)
+        })
+        .collect();
+    let (cpu, gpu) = (&runs[0], &runs[1]);
+    assert_eq!(cpu.1.len(), 10);
+    for (i, (a, b)) in cpu.1.iter().zip(&gpu.1).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-3 * a.abs(),
+            "step {i}: loss {a} (fused) vs {b} (wgpu)"
+        );
+    }
+    let (mut same, mut all) = (0usize, 0usize);
+    for (a, b) in cpu.2.iter().zip(&gpu.2) {
+        assert_eq!(a.len(), b.len());
+        same += a.iter().zip(b).filter(|(x, y)| x == y).count();
+        all += a.len();
+    }
+    assert!(
+        all > 0 && same * 100 >= all * 97,
+        "{same} of {all} pixels agree"
+    );
+}
+
+/// The `loss_total` column of `pipe show train --table train_log` output.
+#[cfg(feature = "wgpu")]
+fn losses_of(show: &str) -> Vec<f32> {
+    let mut lines = show
+        .lines()
+        .skip_while(|l| !l.split_whitespace().any(|w| w == "iteration"));
+    let header: Vec<&str> = lines.next().unwrap_or("").split_whitespace().collect();
+    let col = header
+        .iter()
+        .position(|h| *h == "loss_total")
+        .expect("a `loss_total` column");
+    lines
+        .filter_map(|l| l.split_whitespace().nth(col)?.parse().ok())
+        .collect()
+}
