@@ -293,7 +293,12 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             if executor == ExecutorKind::Slurm && p.scenes.is_empty() {
                 return Err(ExecutorError::NoScenes(p.file.clone()).into());
             }
-            if !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several)) {
+            // A local dry run lists every stage of every scene in order, in process.
+            let dry_local = opts.dry_run && executor == ExecutorKind::Local;
+            if !p.scenes.is_empty()
+                && !dry_local
+                && (executor == ExecutorKind::Slurm || (jobs > 1 && several))
+            {
                 let exec = ExecOptions {
                     kind: executor,
                     jobs,
@@ -461,9 +466,30 @@ fn fresh_entry(p: &Pipeline, stage: &str) -> Result<(Store, Box<Manifest>)> {
     }
 }
 
-fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Result<i32> {
+/// The tables of stage `stage`'s up-to-date entry, verified against its manifest. An entry
+/// that fails (bit rot the cheap check did not see) is an error saying how to repair it.
+fn open_fresh(p: &Pipeline, stage: &str) -> Result<(Store, Box<Manifest>, stages::TableSet)> {
     let (store, m) = fresh_entry(p, stage)?;
-    let tables = store.open_tables(&m, false)?;
+    match store.open_tables(&m, false) {
+        Ok(t) => Ok((store, m, t)),
+        Err(StoreError::Corrupt(why)) => {
+            let moved = match store.quarantine(&m.key) {
+                Ok(d) => format!("moved to {}", d.display()),
+                Err(e) => format!("could not be moved to trash/: {e}"),
+            };
+            Err(anyhow!(
+                "stage `{stage}`: cache entry {} is corrupt: {why} ({moved}); \
+                 `pipe run --until {stage}` recomputes it",
+                m.key
+            )
+            .into())
+        }
+        Err(e) => Err(e.into()),
+    }
+}
+
+fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Result<i32> {
+    let (store, m, tables) = open_fresh(p, stage)?;
     if let Some(t) = table {
         if !tables.contains(t) {
             return Err(usage(format!(
@@ -540,8 +566,7 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
 }
 
 fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
-    let (store, m) = fresh_entry(p, stage)?;
-    let tables = store.open_tables(&m, false)?;
+    let (_, _, tables) = open_fresh(p, stage)?;
     let s = &p.stages[p.index_of(stage).unwrap()];
     std::fs::create_dir_all(to).with_context(|| format!("creating {}", to.display()))?;
     let files = s
@@ -655,7 +680,7 @@ fn cmd_kinds(only: Option<&str>) -> Result<i32> {
         println!("  output {}", k.outputs().join(", "));
         if let Some(obj) = k.default_params().as_object() {
             for (name, v) in obj {
-                println!("  param  {name} = {v}");
+                println!("  param  {name} = {}", crate::config::show_json(v));
             }
         }
         println!();

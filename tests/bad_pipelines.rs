@@ -76,3 +76,46 @@ fn bad_command_lines_are_usage_errors() {
     let (code, _, err) = ws.cmd("show", &["zz"]);
     assert_eq!(code, 2, "{err}");
 }
+
+/// A bad value deep inside a param names its full key (`STAGE.PARAM.FIELD`) and where it was
+/// given, and shows NaN as NaN.
+#[test]
+fn nested_param_errors_name_the_full_key_and_where_it_was_given() {
+    let ws = common::Workspace::new(common::TINY_PIPELINE);
+    for (set, needles) in [
+        (
+            "train.train.lr=.nan",
+            &[
+                "command line `train.train.lr=.nan`",
+                "`train.train.lr`",
+                ".nan (NaN)",
+            ][..],
+        ),
+        (
+            "train.train.iterations=-1",
+            &["`train.train.iterations`", "invalid value: integer `-1`"][..],
+        ),
+        ("scene.seed=.inf", &["`scene.seed`", "infinity"][..]),
+    ] {
+        let (code, _, err) = ws.run(&["--set", set]);
+        assert_eq!(code, 2, "{set}: {err}");
+        for n in needles {
+            assert!(err.contains(n), "{set}: lacks {n:?}: {err}");
+        }
+        assert!(!err.contains("null"), "{set}: {err}");
+    }
+    // In the file: the line of the nested key itself.
+    let text = fs::read_to_string(ws.dir().join("pipeline.yaml")).unwrap();
+    let bad = text.replacen("iterations: 40,", "iterations: -1,", 1);
+    assert_ne!(bad, text, "the tiny pipeline sets train params inline");
+    fs::write(ws.dir().join("bad.yaml"), &bad).unwrap();
+    let line = bad
+        .lines()
+        .position(|l| l.contains("iterations: -1"))
+        .unwrap()
+        + 1;
+    let (code, _, err) = ws.run(&["-f", "bad.yaml"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains(&format!("bad.yaml:{line}:")), "{err}");
+    assert!(err.contains("`train.train.iterations`"), "{err}");
+}

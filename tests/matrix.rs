@@ -290,3 +290,29 @@ fn the_tiny_pipeline_as_a_two_scene_matrix_aggregates_and_exports_a_summary() {
         "the two seeds gave the same scene"
     );
 }
+
+#[test]
+fn a_dry_run_of_a_matrix_lists_every_stage_of_every_scene_and_exits_0() {
+    let ws = Workspace::new(MATRIX);
+    for jobs in ["1", "2"] {
+        let (code, out, err) = ws.run(&["--dry-run", "-j", jobs]);
+        assert_eq!(code, 0, "-j {jobs}: {out}{err}");
+        let would: Vec<&str> = out
+            .lines()
+            .filter(|l| l.contains("would run"))
+            .map(|l| l.split_whitespace().next().unwrap())
+            .collect();
+        // Every scene's stages, each after its inputs, then the dataset stage.
+        for stage in ["a@value1-factor3", "b@value2-factor10", "all"] {
+            assert!(
+                would.contains(&stage),
+                "-j {jobs}: {stage} missing in\n{out}"
+            );
+        }
+        let pos = |s: &str| would.iter().position(|w| *w == s).unwrap();
+        assert!(pos("a@value2-factor3") < pos("b@value2-factor3"), "{out}");
+        assert_eq!(pos("all"), would.len() - 1, "{out}");
+        assert!(!out.contains("skipped") && !out.contains("failed"), "{out}");
+    }
+    assert!(ws.entries().is_empty(), "a dry run computes nothing");
+}

@@ -225,6 +225,96 @@ fn corrupt_entries_are_detected_moved_aside_and_recomputed() {
     assert_eq!(ws.last_run_map()["a"], Outcome::Ran);
 }
 
+/// Flips one byte of `file` in place (same inode, same size) and puts its mtime back.
+fn flip_in_place(file: &std::path::Path) {
+    use std::io::{Read, Seek, SeekFrom, Write};
+    let mtime = fs::metadata(file).unwrap().modified().unwrap();
+    let mut f = fs::File::options()
+        .read(true)
+        .write(true)
+        .open(file)
+        .unwrap();
+    let at = f.metadata().unwrap().len() / 3;
+    let mut byte = [0u8];
+    f.seek(SeekFrom::Start(at)).unwrap();
+    f.read_exact(&mut byte).unwrap();
+    f.seek(SeekFrom::Start(at)).unwrap();
+    f.write_all(&[byte[0] ^ 0x10]).unwrap();
+    f.set_modified(mtime).unwrap();
+}
+
+#[test]
+fn bit_rot_is_found_reported_and_repaired() {
+    let ws = Workspace::new(CHAIN);
+    ws.run_ok(&[]);
+    let before = ws.numbers("b");
+    let parquet = |stage: &str| {
+        ws.cache()
+            .join("objects")
+            .join(ws.stage_key(stage))
+            .join("test_numbers.parquet")
+    };
+    let trash = || fs::read_dir(ws.cache().join("trash")).map_or(0, |d| d.count());
+
+    // A write whose mtime was put back: the cheap check sees the ctime change.
+    flip_in_place(&parquet("b"));
+    let st = ws.status(&[]);
+    assert!(ws.status_line(&st, "b").contains("CORRUPT"), "{st}");
+    ws.run_ok(&[]);
+    assert_eq!(ws.last_run_map()["b"], Outcome::Ran);
+    assert_eq!((ws.numbers("b"), trash()), (before.clone(), 1));
+
+    // Rot no stamp shows (as on a failing disk; simulated by recording the damaged file's
+    // stamp as verified): found by the first stage that reads the entry, which recomputes it
+    // and then runs.
+    let rot = |ws: &Workspace| {
+        use std::os::unix::fs::MetadataExt;
+        let file = parquet("b");
+        flip_in_place(&file);
+        let m = fs::metadata(&file).unwrap();
+        let memo_path = ws.cache().join("state/verified.json");
+        let mut memo: serde_json::Value =
+            serde_json::from_slice(&fs::read(&memo_path).unwrap()).unwrap();
+        let name = format!("{}/test_numbers.parquet", ws.stage_key("b"));
+        memo[name] = serde_json::json!([
+            m.len(),
+            m.mtime() * 1_000_000_000 + m.mtime_nsec(),
+            m.ino(),
+            m.ctime() * 1_000_000_000 + m.ctime_nsec()
+        ]);
+        fs::write(&memo_path, serde_json::to_vec(&memo).unwrap()).unwrap();
+    };
+    rot(&ws);
+    let st = ws.status(&[]);
+    assert!(
+        ws.status_line(&st, "b").contains("fresh"),
+        "invisible to the cheap check: {st}"
+    );
+    let (code, out, err) = ws.run(&["--force", "d"]);
+    assert_eq!(code, 0, "{out}{err}");
+    assert!(
+        err.contains("cache entry corrupt") && err.contains("stage `b`"),
+        "{err}"
+    );
+    let r = ws.last_run_map();
+    assert_eq!((r["b"], r["d"]), (Outcome::Ran, Outcome::Ran), "{out}");
+    assert_eq!((ws.numbers("b"), trash()), (before.clone(), 2));
+    ws.assert_every_entry_verifies("the repair");
+
+    // `show` and `export` read it too: they move it aside and say what recomputes it.
+    rot(&ws);
+    let (code, _, err) = ws.cmd("show", &["b"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("corrupt") && err.contains("pipe run --until b"),
+        "{err}"
+    );
+    assert_eq!(trash(), 3);
+    ws.run_ok(&[]);
+    assert_eq!(ws.last_run_map()["b"], Outcome::Ran);
+    assert_eq!(ws.numbers("b"), before);
+}
+
 #[test]
 fn a_failing_stage_publishes_nothing_and_skips_dependents() {
     let ws = Workspace::new(CHAIN);
@@ -380,6 +470,64 @@ fn editing_an_external_input_file_reruns_exactly_what_depends_on_it() {
         (Outcome::Ran, Outcome::Ran, Outcome::Cached)
     );
     assert_eq!(ws.numbers("m"), vec![2, 6]);
+}
+
+#[test]
+fn an_input_that_is_not_a_regular_file_is_an_error_at_once() {
+    let ws =
+        Workspace::new("stages:\n  f:\n    uses: test_file\n    params: {path: numbers.txt}\n");
+    // A directory (think `--set scene.bboxes=.` on a data set root): never hashed.
+    fs::create_dir_all(ws.dir().join("big/nested")).unwrap();
+    fs::write(ws.dir().join("big/nested/x.bin"), "x").unwrap();
+    // A FIFO: reading it would block forever.
+    let fifo = ws.dir().join("pipe.fifo");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    for (value, what) in [("big", "is a directory"), ("pipe.fifo", "is a FIFO")] {
+        let set = format!("f.path={value}");
+        for command in ["run", "status"] {
+            let child = ws.spawn_command(command, &["--set", &set]);
+            let out = common::wait_with_timeout(child, Duration::from_secs(60))
+                .unwrap_or_else(|| panic!("`pipe {command} --set {set}` hangs"));
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{command} {set}: {err}");
+            assert!(
+                err.contains(what) && err.contains(value) && err.contains("stage `f`"),
+                "{command} {set}: {err}"
+            );
+        }
+    }
+    assert!(ws.entries().is_empty());
+}
+
+#[test]
+fn a_dry_run_lists_every_stage_that_would_run_in_order() {
+    let ws = Workspace::new(CHAIN);
+    let (code, out, err) = ws.run(&["--dry-run"]);
+    assert_eq!(code, 0, "{out}{err}");
+    let lines: Vec<&str> = out.lines().filter(|l| l.contains("would run")).collect();
+    let names: Vec<&str> = lines
+        .iter()
+        .map(|l| l.split_whitespace().next().unwrap())
+        .collect();
+    assert_eq!(names, ["a", "b", "c", "d"], "{out}");
+    assert!(lines[0].contains("never run"), "{out}");
+    assert!(lines[1].contains("upstream `a` would run first"), "{out}");
+    assert!(!out.contains("skipped") && !out.contains("failed"), "{out}");
+    assert!(ws.entries().is_empty(), "a dry run computes nothing");
+    // After a real run, a param change: the changed stage and what is below it.
+    ws.run_ok(&[]);
+    let (code, out, _) = ws.run(&["--dry-run", "--set", "a.value=6"]);
+    assert_eq!(code, 0, "{out}");
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with('a') && l.contains("param")),
+        "{out}"
+    );
+    assert!(out.contains("upstream `a` would run first"), "{out}");
 }
 
 #[test]

@@ -246,6 +246,9 @@ fn time_against_error(d: &mut Doc, i: &Input) {
         and_list(&flat),
         units(&per_run)
     ));
+    for note in spec.notes {
+        d.p(format!("{note}."));
+    }
     for sc in &s.scenes {
         d.h(3, format!("Scene `{}`", sc.name));
         d.image(
@@ -482,7 +485,7 @@ mod tests {
         let spec = stages::kinds::find("evaluate").unwrap().scores().unwrap();
         assert_eq!(
             units(&metrics(spec, spec.per_run)),
-            "mIoU, Acc, PQ and delta<1.25 in %, depth RMSE in m"
+            "mIoU, Acc, PQ, PQ (panopticapi) and delta<1.25 in %, depth RMSE in m"
         );
     }
 }

@@ -49,8 +49,8 @@ pub use error::{ConfigError, Loc};
 pub use overrides::{set_path, Override};
 pub use pipeline::{Pipeline, StageDecl};
 pub use slurm::SlurmConfig;
-pub use yaml::shorten;
 pub(crate) use yaml::Locations;
+pub use yaml::{shorten, show_json};
 
 use yaml::{yaml_type, Ctx};
 

@@ -265,6 +265,18 @@ fn params_of(
                 ),
             ));
         };
+        if let Some((path, x)) = non_finite(v, key) {
+            // JSON has no NaN: it would reach the kind as `null` and be reported as such.
+            return Err(d.err(
+                nested_loc(d, l, &path),
+                None,
+                format!(
+                    "`{}.{path}`: {} is not a finite number",
+                    d.name,
+                    show_float(x)
+                ),
+            ));
+        }
         let user: Value = serde_json::to_value(v)
             .map_err(|e| d.err(l.clone(), Some(&pkey), format!("unsupported value: {e}")))?;
         if !type_fits(default, &user) {
@@ -287,14 +299,72 @@ fn params_of(
             stages::StageError::Params(m) => m,
             other => other.to_string(),
         };
-        // Point at the param the message names (`name`), if the user gave it.
-        let named = msg.split('`').nth(1).map(str::to_string);
-        let (l, key) = match named.and_then(|n| given.iter().find(|(k, ..)| *k == n)) {
-            Some((k, _, l)) => (l.clone(), Some(format!("params.{k}"))),
-            None => (d.key("params"), None),
-        };
-        d.err(l, key.as_deref(), msg)
+        // Point at the param the message names (`name`, or `name.field[0]` when the kind's
+        // deserialisation failed inside it), if the user gave it.
+        let named = msg.split('`').nth(1).unwrap_or_default().to_string();
+        let top = named.split(['.', '[']).next().unwrap_or_default();
+        match given.iter().find(|(k, ..)| k == top) {
+            Some((k, _, l)) if named == *k => {
+                let rest = msg.strip_prefix(&format!("`{k}`: ")).unwrap_or(&msg);
+                d.err(l.clone(), Some(&format!("params.{k}")), rest)
+            }
+            Some((_, _, l)) => {
+                let rest = msg
+                    .strip_prefix(&format!("`{named}`: "))
+                    .unwrap_or(&msg)
+                    .to_string();
+                let full = format!("`{}.{named}`: {rest}", d.name);
+                d.err(nested_loc(d, l, &named), None, full)
+            }
+            None => d.err(d.key("params"), None, msg),
+        }
     })
+}
+
+/// Where the field `path` (`train.lr`, `origin[0]`) inside a param stands: the field's own key
+/// when the value came from the file, else where the param was given (`--set`).
+fn nested_loc(d: &Decl, given: &Loc, path: &str) -> Loc {
+    match given {
+        Loc::File { .. } => match d.key(&format!(
+            "params.{}",
+            path.replace('[', ".").replace(']', "")
+        )) {
+            Loc::Unknown => given.clone(),
+            l => l,
+        },
+        other => other.clone(),
+    }
+}
+
+/// The first NaN or infinity in a param's value, with its path (`train.lr`, `origin[0]`).
+fn non_finite(v: &Yaml, path: &str) -> Option<(String, f64)> {
+    match v {
+        Yaml::Number(n) => n
+            .as_f64()
+            .filter(|x| !x.is_finite())
+            .map(|x| (path.to_string(), x)),
+        Yaml::Sequence(items) => items
+            .iter()
+            .enumerate()
+            .find_map(|(i, item)| non_finite(item, &format!("{path}[{i}]"))),
+        Yaml::Mapping(m) => m.iter().find_map(|(k, item)| {
+            let k = k.as_str().unwrap_or("?");
+            non_finite(item, &format!("{path}.{k}"))
+        }),
+        Yaml::Tagged(t) => non_finite(&t.value, path),
+        _ => None,
+    }
+}
+
+/// NaN and infinities as YAML writes them.
+fn show_float(x: f64) -> &'static str {
+    if x.is_nan() {
+        ".nan (NaN)"
+    } else if x > 0.0 {
+        ".inf (infinity)"
+    } else {
+        "-.inf (-infinity)"
+    }
 }
 
 /// Inputs name existing stages (of `stages` itself or of `more`) whose kind writes the tables

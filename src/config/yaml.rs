@@ -205,7 +205,53 @@ pub(crate) fn json_type(v: &Value) -> &'static str {
 }
 
 pub(crate) fn describe(v: &Value) -> String {
-    shorten(&v.to_string(), 40)
+    shorten(&show_json(v), 40)
+}
+
+/// `v` as compact JSON, except that a float that is exactly an f32 (the kinds' f32 params,
+/// stored as f64) is written in the shortest form that parses back to that f32: `0.9`, not
+/// `0.8999999761581421`.
+pub fn show_json(v: &Value) -> String {
+    let mut out = String::new();
+    write_json(v, &mut out);
+    out
+}
+
+fn write_json(v: &Value, out: &mut String) {
+    match v {
+        Value::Number(n) if n.is_f64() => {
+            let x = n.as_f64().unwrap_or(f64::NAN);
+            let f = x as f32;
+            if f.is_finite() && f64::from(f) == x {
+                out.push_str(&format!("{f:?}"));
+            } else {
+                out.push_str(&n.to_string());
+            }
+        }
+        Value::Array(items) => {
+            out.push('[');
+            for (i, item) in items.iter().enumerate() {
+                if i > 0 {
+                    out.push(',');
+                }
+                write_json(item, out);
+            }
+            out.push(']');
+        }
+        Value::Object(m) => {
+            out.push('{');
+            for (i, (k, item)) in m.iter().enumerate() {
+                if i > 0 {
+                    out.push(',');
+                }
+                out.push_str(&Value::String(k.clone()).to_string());
+                out.push(':');
+                write_json(item, out);
+            }
+            out.push('}');
+        }
+        other => out.push_str(&other.to_string()),
+    }
 }
 
 /// `s` cut to at most `max` characters plus `...` (on a character boundary: values may hold
@@ -214,5 +260,33 @@ pub fn shorten(s: &str, max: usize) -> String {
     match s.char_indices().nth(max) {
         Some((end, _)) => format!("{}...", &s[..end]),
         None => s.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn f32_values_show_in_their_shortest_form() {
+        let v = serde_json::json!({
+            "momentum": f64::from(0.9f32),
+            "lr": f64::from(5e-3f32),
+            "tiny": f64::from(1e-10f32),
+            "exact": 0.1f64,
+            "n": [1, f64::from(0.3f32), "x"],
+        });
+        let shown = show_json(&v);
+        assert_eq!(
+            shown,
+            r#"{"exact":0.1,"lr":0.005,"momentum":0.9,"n":[1,0.3,"x"],"tiny":1e-10}"#
+        );
+        // Every shown f32 parses back to the same f32.
+        for (text, f) in [("0.9", 0.9f32), ("0.005", 5e-3), ("1e-10", 1e-10)] {
+            assert_eq!(text.parse::<f32>().unwrap(), f);
+        }
+        // A true f64 that is not an f32 keeps its full form.
+        assert_eq!(show_json(&serde_json::json!(0.3f64)), "0.3");
+        assert_ne!(f64::from(0.3f32), 0.3f64);
     }
 }

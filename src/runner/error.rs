@@ -96,6 +96,15 @@ pub enum StageFailure {
     /// Reading its inputs or publishing its outputs.
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// An input entry failed verification when read (bit rot the cheap check cannot see); it
+    /// was moved to `trash/` (`moved`) and the run recomputes it.
+    #[error("input `{stage}`: cache entry {key} is corrupt: {why}{}", .moved.as_ref().map_or(String::new(), |d| format!(" (moved to {})", d.display())))]
+    InputCorrupt {
+        stage: String,
+        key: String,
+        why: String,
+        moved: Option<PathBuf>,
+    },
     #[error("scene `{scene}` has no table `{table}`")]
     GatherMissing { scene: String, table: String },
     #[error("no scenes to gather table `{0}` from")]

@@ -18,7 +18,7 @@ use super::{
 };
 use crate::{
     config::Pipeline,
-    store::{unix_now, Entry, Manifest, PendingEntry, Store},
+    store::{unix_now, Entry, Manifest, PendingEntry, Store, StoreError},
 };
 
 /// The manifests of a gathered slot's stage in every scene: (scene, manifest).
@@ -215,7 +215,17 @@ impl Job {
 /// entry already.
 fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<TableSet, StageFailure> {
     let trusted = loaded.lock().unwrap().contains(&m.key);
-    let t = store.open_tables(m, trusted)?;
+    let t = match store.open_tables(m, trusted) {
+        Err(StoreError::Corrupt(why)) => {
+            return Err(StageFailure::InputCorrupt {
+                stage: m.stage.clone(),
+                key: m.key.clone(),
+                why,
+                moved: store.quarantine(&m.key).ok(),
+            })
+        }
+        other => other?,
+    };
     loaded.lock().unwrap().insert(m.key.clone());
     Ok(t)
 }

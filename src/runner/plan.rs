@@ -12,7 +12,7 @@ use super::{
     options::{RunOptions, Scenes},
 };
 use crate::{
-    config::{shorten, Pipeline},
+    config::{shorten, show_json, Pipeline},
     dag::Dag,
     fingerprint,
     store::{Entry, InputInfo, Manifest, Store},
@@ -52,11 +52,42 @@ pub fn external_digests(p: &Pipeline, store: &Store) -> Result<HashMap<usize, St
                     stage: s.name.clone(),
                     source,
                 })?;
+        // Before hashing: a directory would be hashed recursively (a whole data set root) and a
+        // FIFO would block the read forever.
+        for path in &paths {
+            if let Some(problem) = not_a_file(path) {
+                return Err(RunError::ExternalInputs {
+                    stage: s.name.clone(),
+                    source: stages::StageError::Input(format!("{}: {problem}", path.display())),
+                });
+            }
+        }
         if !paths.is_empty() {
             out.insert(i, store.files_digest(&paths)?);
         }
     }
     Ok(out)
+}
+
+/// Why `path` cannot be read as an input file, if it exists and is not a regular file (a
+/// missing file is left to the stage, which says which input it is).
+fn not_a_file(path: &std::path::Path) -> Option<String> {
+    use std::os::unix::fs::FileTypeExt;
+    let t = std::fs::metadata(path).ok()?.file_type();
+    let what = if t.is_file() {
+        return None;
+    } else if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else if t.is_socket() {
+        "a socket"
+    } else if t.is_block_device() || t.is_char_device() {
+        "a device"
+    } else {
+        "not a regular file"
+    };
+    Some(format!("is {what}, expected a regular file"))
 }
 
 /// The key of stage `i` given the output digests of its upstream stages; `None` while one of
@@ -119,7 +150,7 @@ pub(super) fn key_of(
 }
 
 fn show_value(v: &Value) -> String {
-    shorten(&v.to_string(), 48)
+    shorten(&show_json(v), 48)
 }
 
 /// Appends `param `path` old -> new` for every leaf that differs (nested objects recursively).

@@ -12,7 +12,7 @@ use std::{
 use tokio::task::JoinSet;
 
 use super::{
-    error::RunError,
+    error::{RunError, StageFailure},
     execute::{Finished, Job, Loaded, SceneManifests},
     options::RunOptions,
     plan::{explain, key_of},
@@ -85,6 +85,14 @@ pub(super) struct Scheduler<'a> {
     manifests: HashMap<usize, Box<Manifest>>,
     reports: HashMap<usize, StageReport>,
     failed: BTreeSet<usize>,
+    /// In a dry run: the stages that would run (their outputs, unknown yet, make everything
+    /// downstream of them run too).
+    would_run: BTreeSet<usize>,
+    /// Entries found corrupt when read this run (moved to trash/), by stage: the stage is
+    /// computed again, once, and this is why.
+    repairs: HashMap<usize, String>,
+    /// Stages started again after such a repair (once each).
+    retried: BTreeSet<usize>,
     done: BTreeSet<usize>,
     in_flight: BTreeSet<usize>,
     /// No stage starts any more (after a failure without `--keep-going`).
@@ -127,6 +135,9 @@ impl<'a> Scheduler<'a> {
             manifests: HashMap::new(),
             reports: HashMap::new(),
             failed: BTreeSet::new(),
+            would_run: BTreeSet::new(),
+            repairs: HashMap::new(),
+            retried: BTreeSet::new(),
             done: BTreeSet::new(),
             in_flight: BTreeSet::new(),
             stop: false,
@@ -158,6 +169,22 @@ impl<'a> Scheduler<'a> {
             return Ok(false);
         }
         let p = self.p;
+        if let Some(&first) = ups.iter().find(|u| self.would_run.contains(u)) {
+            // Dry run: the upstream's new outputs decide this stage's key; it runs after it.
+            let why = format!("upstream `{}` would run first", p.stages[first].name);
+            if !self.selected.contains(&i) {
+                return Err(RunError::NotUpToDate {
+                    only: self.opts.only.clone(),
+                    stage: p.stages[i].name.clone(),
+                    reason: why,
+                });
+            }
+            self.reports
+                .insert(i, report(p, i, Outcome::WouldRun, why, None));
+            self.would_run.insert(i);
+            self.done.insert(i);
+            return Ok(true);
+        }
         if let Some(&bad) = ups
             .iter()
             .find(|u| self.failed.contains(u) || !self.digests.contains_key(u))
@@ -188,6 +215,7 @@ impl<'a> Scheduler<'a> {
         if self.opts.dry_run {
             self.reports
                 .insert(i, report(p, i, Outcome::WouldRun, reason, Some(key)));
+            self.would_run.insert(i);
             self.done.insert(i);
             return Ok(true);
         }
@@ -222,7 +250,10 @@ impl<'a> Scheduler<'a> {
                 self.bars.log(&format!("warning: stage `{name}`: {msg}"));
                 msg
             }
-            Entry::Missing => explain(p, i, self.store, key, inputs),
+            Entry::Missing => match self.repairs.get(&i) {
+                Some(why) => why.clone(),
+                None => explain(p, i, self.store, key, inputs),
+            },
         }))
     }
 
@@ -326,6 +357,14 @@ impl<'a> Scheduler<'a> {
             rss,
         } = f;
         self.in_flight.remove(&i);
+        if let Err(StageFailure::InputCorrupt {
+            stage, why, moved, ..
+        }) = &result
+        {
+            if self.repair(i, stage, why, moved.as_deref()) {
+                return Ok(());
+            }
+        }
         self.done.insert(i);
         let r = self.reports.get_mut(&i).expect("report created at start");
         r.wall_s = wall;
@@ -358,6 +397,36 @@ impl<'a> Scheduler<'a> {
             }
         }
         Ok(())
+    }
+
+    /// Stage `i` found the entry of its input `up` corrupt when it read it (moved to `moved`):
+    /// `up` is computed again and `i` after it. Whether that was arranged (once per stage: a
+    /// second failure is reported as a failure).
+    fn repair(&mut self, i: usize, up: &str, why: &str, moved: Option<&std::path::Path>) -> bool {
+        let Some(u) = self.p.index_of(up) else {
+            return false;
+        };
+        if !self.selected.contains(&u) || !self.retried.insert(i) {
+            return false;
+        }
+        self.reports.remove(&i);
+        if self.repairs.contains_key(&u) {
+            return true; // another reader found it first: `i` waits for it too
+        }
+        let msg = match moved {
+            Some(d) => format!("cache entry corrupt: {why} (moved to {})", d.display()),
+            None => format!("cache entry corrupt: {why}"),
+        };
+        self.bars.log(&format!(
+            "warning: stage `{up}`: {msg}; computing it again for `{}`",
+            self.p.stages[i].name
+        ));
+        self.repairs.insert(u, msg);
+        self.done.remove(&u);
+        self.reports.remove(&u);
+        self.digests.remove(&u);
+        self.manifests.remove(&u);
+        true
     }
 
     /// The report of the run, in topological order; selected stages that never started (after

@@ -27,7 +27,10 @@ const HEARTBEAT_S: u64 = 20;
 
 /// The content of a lock file: `PID HOST NONCE`, and its inode and age.
 struct LockHolder {
-    pid: u32,
+    /// `None` when the file does not hold `PID HOST NONCE` (empty, truncated, garbage): a lock
+    /// is linked into place only once its content is written and synced, so such a file was
+    /// never a live lock.
+    pid: Option<u32>,
     host: String,
     ino: u64,
     age_s: f64,
@@ -38,8 +41,9 @@ impl LockHolder {
         let meta = fs::metadata(path).ok()?;
         let text = fs::read_to_string(path).ok()?;
         let mut it = text.split_whitespace();
-        let pid = it.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+        let pid = it.next().and_then(|p| p.parse().ok()).filter(|&p| p > 0);
         let host = it.next().unwrap_or("?").to_string();
+        let pid = pid.filter(|_| it.next().is_some());
         let age_s = meta
             .modified()
             .ok()
@@ -54,11 +58,17 @@ impl LockHolder {
     }
 
     fn is_stale(&self) -> bool {
-        (self.host == host_name() && !pid_alive(self.pid)) || self.age_s > STALE_LOCK_S
+        match self.pid {
+            None => true,
+            Some(pid) => (self.host == host_name() && !pid_alive(pid)) || self.age_s > STALE_LOCK_S,
+        }
     }
 
     fn describe(&self) -> String {
-        format!("process {} on {}", self.pid, self.host)
+        match self.pid {
+            Some(pid) => format!("process {pid} on {}", self.host),
+            None => "an unreadable lock file".to_string(),
+        }
     }
 }
 
@@ -344,5 +354,31 @@ impl RunLock {
                 .io_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
         }
         Ok(RunLock { _file: file })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_lock_file_without_a_holder_is_stale() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        fs::create_dir_all(store.dir("locks")).unwrap();
+        for (key, content) in [
+            ("empty", ""),
+            ("garbage", "\u{0}\u{0}x"),
+            ("pid_only", "123"),
+        ] {
+            fs::write(store.lock_path(key), content).unwrap();
+            let lock = store.try_lock_key(key).unwrap();
+            assert!(lock.is_ok(), "{key:?} lock file: {:?}", lock.err());
+        }
+        // A live holder (this process) still holds.
+        let held = store.try_lock_key("live").unwrap().unwrap();
+        assert!(store.try_lock_key("live").unwrap().is_err());
+        drop(held);
+        assert!(store.try_lock_key("live").unwrap().is_ok());
     }
 }

@@ -1,5 +1,5 @@
 //! Hash memos, so a no-op run does not re-hash gigabytes: `state/verified.json` holds the
-//! (size, mtime, inode) of every entry file hashed since it last changed, `state/files.json`
+//! (size, mtime, inode, ctime) of every entry file hashed since it last changed, `state/files.json`
 //! the digests of files outside the cache that stages read. Both are best effort: losing one
 //! only costs a re-hash.
 
@@ -17,14 +17,17 @@ use super::{
 };
 use crate::error::IoContext;
 
-/// (size, mtime in ns, inode): a file is re-hashed when any of them changed.
-type Stamp = (u64, i64, u64);
+/// (size, mtime in ns, inode, ctime in ns): a file is re-hashed when any of them changed. The
+/// ctime catches a write whose mtime was put back (`touch -d`, `cp -p` over it): no user call
+/// can set it.
+type Stamp = (u64, i64, u64, i64);
 
 pub(super) fn stamp(meta: &Metadata) -> Stamp {
     (
         meta.len(),
         meta.mtime() * 1_000_000_000 + meta.mtime_nsec(),
         meta.ino(),
+        meta.ctime() * 1_000_000_000 + meta.ctime_nsec(),
     )
 }
 
@@ -90,46 +93,28 @@ impl Verified {
 }
 
 /// `path` itself if it is not a directory, else every file below it, sorted.
-fn collect_files(path: &Path, out: &mut Vec<PathBuf>) {
-    if path.is_dir() {
-        let mut entries: Vec<PathBuf> = fs::read_dir(path)
-            .map(|rd| rd.filter_map(|e| e.ok()).map(|e| e.path()).collect())
-            .unwrap_or_default();
-        entries.sort();
-        for e in entries {
-            collect_files(&e, out);
-        }
-    } else {
-        out.push(path.to_path_buf());
-    }
-}
-
 impl Store {
-    /// blake3 over the contents of `paths` (directories recursively, in sorted order; a missing
-    /// path enters as "missing" so the stage itself reports it). File hashes are memoised by
-    /// path, size, mtime and inode in `state/files.json`.
+    /// blake3 over the contents of the files `paths` (in order; a missing one enters as
+    /// "missing" so the stage itself reports it; the caller has checked they are regular files).
+    /// File hashes are memoised by path, size, mtime and inode in `state/files.json`.
     pub fn files_digest(&self, paths: &[PathBuf]) -> Result<String, StoreError> {
         type FileMemo = BTreeMap<String, (Stamp, String)>;
         let memo_path = self.dir("state").join("files.json");
         let mut memo: FileMemo = read_json(&memo_path);
         let mut changed = false;
-        let mut files = Vec::new();
-        for p in paths {
-            collect_files(p, &mut files);
-        }
         let mut h = blake3::Hasher::new();
-        for f in files {
+        for f in paths {
             let name = f.to_string_lossy().into_owned();
             h.update(name.as_bytes());
             h.update(&[0]);
-            let digest = match fs::metadata(&f) {
+            let digest = match fs::metadata(f) {
                 Err(_) => "missing".to_string(),
                 Ok(meta) => {
                     let stamp = stamp(&meta);
                     match memo.get(&name) {
                         Some((s, d)) if *s == stamp => d.clone(),
                         _ => {
-                            let bytes = fs::read(&f)
+                            let bytes = fs::read(f)
                                 .io_context(|| format!("reading input file {}", f.display()))?;
                             let d = hash_bytes(&bytes);
                             memo.insert(name.clone(), (stamp, d.clone()));

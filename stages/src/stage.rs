@@ -143,8 +143,10 @@ pub trait Stage: Send + Sync {
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
     /// Writes the stage's human-facing files (PNGs, reports) into `dir`; returns what it wrote.
     fn export(&self, params: &Value, tables: &TableSet, dir: &Path) -> Result<Vec<PathBuf>>;
-    /// Files and directories outside the cache this run will read (e.g. a KITTI-360 root); the
-    /// runner hashes their content into the stage's key, so editing one re-runs the stage.
+    /// The files outside the cache this run will read (e.g. a KITTI-360 root's); the runner
+    /// hashes their content into the stage's key, so editing one re-runs the stage. Each must
+    /// be a regular file (or missing, for the stage to report): anything else is an error
+    /// before hashing.
     fn external_inputs(&self, params: &Value) -> Result<Vec<PathBuf>>;
     /// How this kind's score table reads, if it scores methods (see [`ScoreSpec`]).
     fn scores(&self) -> Option<&'static ScoreSpec>;
@@ -191,8 +193,18 @@ pub trait TypedStage: Send + Sync {
     }
 }
 
+/// The params as the kind's struct; an error starts with the path of the field it is about
+/// (`` `train.lr`: invalid type ... ``) when it is not the top level.
 fn typed_params<P: DeserializeOwned>(params: &Value) -> Result<P> {
-    serde_json::from_value(params.clone()).map_err(|e| StageError::Params(e.to_string()))
+    serde_path_to_error::deserialize(params.clone()).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        if path.is_empty() || path == "." {
+            StageError::Params(inner.to_string())
+        } else {
+            StageError::Params(format!("`{path}`: {inner}"))
+        }
+    })
 }
 
 impl<T: TypedStage> Stage for T {
@@ -261,6 +273,8 @@ pub struct ScoreSpec {
     pub ablation: &'static [&'static str],
     /// Metrics drawn against training time.
     pub plotted: &'static [&'static str],
+    /// What a reader must know to compare the figures (conventions), one sentence each.
+    pub notes: &'static [&'static str],
 }
 
 /// A method of a [`ScoreSpec`].

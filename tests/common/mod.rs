@@ -90,8 +90,13 @@ impl Workspace {
     }
 
     pub fn spawn(&self, args: &[&str]) -> Child {
+        self.spawn_command("run", args)
+    }
+
+    /// Spawns `pipe COMMAND ARGS` with piped stdout and stderr.
+    pub fn spawn_command(&self, command: &str, args: &[&str]) -> Child {
         Command::new(PIPE)
-            .arg("run")
+            .arg(command)
             .args(args)
             .current_dir(self.dir())
             .stdout(Stdio::piped())

@@ -236,12 +236,45 @@ impl ClassRows {
     }
 }
 
+/// Metric names ending in this (`pq_panopticapi`, `pq_things_panopticapi`, ...) score the
+/// panoptic maps as panopticapi does: every predicted and GT segment counts, however small.
+/// Without it (`pq`, ...): the Panoptic NeRF paper's convention, where predicted segments
+/// under `min_segment_px` become sky and GT segments under it are void.
+pub const PANOPTICAPI_SUFFIX: &str = "_panopticapi";
+
+/// What each PQ convention means, as `metrics.json` states it.
+pub const PQ_CONVENTIONS: &[(&str, &str)] = &[
+    (
+        "pq",
+        "Panoptic NeRF paper: predicted segments under min_segment_px (100) pixels are relabelled sky and GT segments under it are void, before matching",
+    ),
+    (
+        "pq_panopticapi",
+        "panopticapi (COCO; the Cityscapes and KITTI-360 scripts): every segment counts, no relabelling",
+    ),
+];
+
 /// Accumulators of one method.
 struct MethodSums {
     confusion: ConfusionMatrix,
     panoptic: Option<PanopticAccumulator>,
+    /// The same panoptic maps scored as panopticapi (and the KITTI-360 and Cityscapes scripts
+    /// built on it) does: no small-segment rules.
+    panopticapi: Option<PanopticAccumulator>,
     depth: Option<DepthAccumulator>,
     mc: Option<Consistency>,
+}
+
+impl MethodSums {
+    /// One frame's panoptic maps, under both conventions.
+    fn add_panoptic(&mut self, gsem: &[u8], ginst: &[u16], sem: &[u8], inst: &[u16]) -> Result<()> {
+        for acc in [&mut self.panoptic, &mut self.panopticapi] {
+            acc.as_mut()
+                .expect("a panoptic method")
+                .add_frame(gsem, ginst, sem, inst)?;
+        }
+        Ok(())
+    }
 }
 
 /// The per-image tables evaluation reads, indexed by (frame, camera). The ground truth and
@@ -314,14 +347,19 @@ impl Evaluation {
             min_pred_segment_px: Some(p.min_segment_px),
             sky_id: labels::SKY,
         };
+        let api_cfg = pan_cfg.clone().panopticapi();
         let new_sums = |panoptic: bool, depth: bool| -> Result<MethodSums> {
-            Ok(MethodSums {
-                confusion: ConfusionMatrix::new(&p.classes)?,
-                panoptic: if panoptic {
-                    Some(PanopticAccumulator::new(pan_cfg.clone())?)
+            let acc = |cfg: &PanopticConfig| -> Result<Option<PanopticAccumulator>> {
+                Ok(if panoptic {
+                    Some(PanopticAccumulator::new(cfg.clone())?)
                 } else {
                     None
-                },
+                })
+            };
+            Ok(MethodSums {
+                confusion: ConfusionMatrix::new(&p.classes)?,
+                panoptic: acc(&pan_cfg)?,
+                panopticapi: acc(&api_cfg)?,
                 depth: if depth {
                     Some(DepthAccumulator::new(p.max_depth)?)
                 } else {
@@ -385,10 +423,7 @@ impl Evaluation {
 
         let s = self.sums.get_mut("panoptic_nerf").unwrap();
         s.confusion.add(gsem, ours)?;
-        s.panoptic
-            .as_mut()
-            .unwrap()
-            .add_frame(gsem, ginst, ours, ours_inst)?;
+        s.add_panoptic(gsem, ginst, ours, ours_inst)?;
         if let Some(l) = src.lidar_depth(key)? {
             s.depth.as_mut().unwrap().add(depth, l)?;
         }
@@ -405,10 +440,7 @@ impl Evaluation {
 
         let s = self.sums.get_mut("first_primitive").unwrap();
         s.confusion.add(gsem, &fp_sem)?;
-        s.panoptic
-            .as_mut()
-            .unwrap()
-            .add_frame(gsem, ginst, &fp_sem, &fp_inst)?;
+        s.add_panoptic(gsem, ginst, &fp_sem, &fp_inst)?;
         self.labels_of
             .insert(("first_primitive", c.frame, c.camera), fp_sem);
 
@@ -483,15 +515,30 @@ impl Evaluation {
             push(method, "miou", s.confusion.miou());
             push(method, "acc", s.confusion.accuracy());
             let pan = s.panoptic.as_ref().map(|a| a.result());
-            let part = |f: fn(&PanopticResult) -> Option<PqSummary>| pan.as_ref().and_then(f);
-            for (prefix, summary) in [
-                ("", part(|r| r.all)),
-                ("_things", part(|r| r.things)),
-                ("_stuff", part(|r| r.stuff)),
-            ] {
-                push(method, &format!("pq{prefix}"), summary.map(|x| x.pq));
-                push(method, &format!("sq{prefix}"), summary.map(|x| x.sq));
-                push(method, &format!("rq{prefix}"), summary.map(|x| x.rq));
+            let api = s.panopticapi.as_ref().map(|a| a.result());
+            for (suffix, res) in [("", &pan), (PANOPTICAPI_SUFFIX, &api)] {
+                let part = |f: fn(&PanopticResult) -> Option<PqSummary>| res.as_ref().and_then(f);
+                for (prefix, summary) in [
+                    ("", part(|r| r.all)),
+                    ("_things", part(|r| r.things)),
+                    ("_stuff", part(|r| r.stuff)),
+                ] {
+                    push(
+                        method,
+                        &format!("pq{prefix}{suffix}"),
+                        summary.map(|x| x.pq),
+                    );
+                    push(
+                        method,
+                        &format!("sq{prefix}{suffix}"),
+                        summary.map(|x| x.sq),
+                    );
+                    push(
+                        method,
+                        &format!("rq{prefix}{suffix}"),
+                        summary.map(|x| x.rq),
+                    );
+                }
             }
             push(method, "pq_dagger", pan.as_ref().and_then(|r| r.pq_dagger));
             push(method, "mc", s.mc.and_then(|c| c.value()));
@@ -515,7 +562,7 @@ impl Evaluation {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -607,6 +654,11 @@ impl TypedStage for Evaluate {
         if t.table("eval_gt")?.num_rows() == 0 {
             json["not_evaluated"] = serde_json::json!(scores::NOT_EVALUATED);
         }
+        let conventions: serde_json::Map<String, serde_json::Value> = PQ_CONVENTIONS
+            .iter()
+            .map(|(k, v)| (k.to_string(), serde_json::json!(v)))
+            .collect();
+        json["pq_conventions"] = serde_json::Value::Object(conventions);
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;

@@ -56,6 +56,7 @@ const COLUMNS: &[(&str, &str, f64, usize)] = &[
     ("PQ th", "pq_things", 100.0, 1),
     ("PQ st", "pq_stuff", 100.0, 1),
     ("PQ†", "pq_dagger", 100.0, 1),
+    ("PQ api", "pq_panopticapi", 100.0, 1),
     ("depth RMSE (m)", "depth_rmse", 1.0, 2),
     ("δ<1.25", "depth_delta_1_25", 100.0, 1),
 ];
@@ -213,6 +214,13 @@ impl Page {
             html.push_str("</tr>");
         }
         html.push_str("</table>");
+        let note = "PQ, SQ, RQ, PQ th/st and PQ† follow the Panoptic NeRF paper (predicted \
+                    segments under evaluate's min_segment_px, default 100 px, become sky; GT \
+                    segments under it are void); PQ api \
+                    scores the same maps as panopticapi and the KITTI-360 scripts do (every \
+                    segment counts). Compare with other papers in the convention they state.";
+        md.push_str(&format!("\n{note}\n\n"));
+        let _ = write!(html, "<p class=\"cap\">{note}</p>");
     }
 
     /// Per-class IoU: classes x methods. Returns the label ids present, ascending.
@@ -419,7 +427,7 @@ fn spread<T: Copy>(keys: &[T], n: usize) -> Vec<T> {
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[

@@ -125,9 +125,7 @@ impl TypedStage for Train {
         let rays = sampling::train_rays(inputs)?;
         let candidates = candidates(&rays, &p.cameras);
         if candidates.is_empty() {
-            return Err(StageError::Input(
-                "no ray of the selected cameras crosses a primitive".into(),
-            ));
+            return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
         }
         let mut trainer = p
             .backend
@@ -214,4 +212,32 @@ impl LogColumns {
         }
         tables::build("train_log", cols)
     }
+}
+
+/// Why no ray can be trained on, as far as the scene shows: which images were looked at and
+/// how far the primitives are from their cameras.
+fn nothing_crossed(inputs: &Inputs, cameras: &[u8]) -> Result<String> {
+    let rows = crate::geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+    let prims = crate::geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+    let used: Vec<_> = rows.iter().filter(|r| cameras.contains(&r.camera)).collect();
+    let frames: std::collections::BTreeSet<u32> = used.iter().map(|r| r.frame).collect();
+    let nearest = used
+        .iter()
+        .flat_map(|r| {
+            let at = r.cam.cam_to_world.translation;
+            prims.iter().map(move |p| p.aabb().centre().distance(at))
+        })
+        .fold(f64::INFINITY, f64::min);
+    let frames = match (frames.first(), frames.last()) {
+        (Some(a), Some(b)) => format!("frames {a}..={b}"),
+        _ => "no frame".to_string(),
+    };
+    Ok(format!(
+        "no ray of the {} images of cameras {cameras:?} ({frames}) crosses any of the {} \
+         primitives; the nearest primitive centre is {nearest:.1} m from a camera. Check that \
+         the poses and the primitives (the scene stage's poses file and bboxes XML) are of \
+         the same sequence and frames",
+        used.len(),
+        prims.len()
+    ))
 }

@@ -62,6 +62,18 @@ impl Default for PanopticConfig {
     }
 }
 
+impl PanopticConfig {
+    /// These classes scored as panopticapi scores them (and the Cityscapes and KITTI-360
+    /// scripts built on it): every predicted and GT segment counts, however small.
+    pub fn panopticapi(self) -> Self {
+        Self {
+            min_gt_segment_px: 0,
+            min_pred_segment_px: None,
+            ..self
+        }
+    }
+}
+
 /// Sums over frames for one class.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 struct ClassSums {

@@ -47,6 +47,7 @@ pub const SCORES: ScoreSpec = ScoreSpec {
         pct("miou", "mIoU"),
         pct("acc", "Acc"),
         pct("pq", "PQ"),
+        pct("pq_panopticapi", "PQ (panopticapi)"),
         pct("mc", "MC"),
         MetricInfo {
             name: "depth_rmse",
@@ -62,10 +63,21 @@ pub const SCORES: ScoreSpec = ScoreSpec {
         },
     ],
     headline: "miou",
-    per_run: &["miou", "acc", "pq", "depth_rmse", "depth_delta_1_25"],
-    per_baseline: &["miou", "acc", "pq", "mc"],
+    per_run: &[
+        "miou",
+        "acc",
+        "pq",
+        "pq_panopticapi",
+        "depth_rmse",
+        "depth_delta_1_25",
+    ],
+    per_baseline: &["miou", "acc", "pq", "pq_panopticapi", "mc"],
     ablation: &["depth_rmse", "depth_delta_1_25", "miou", "acc"],
     plotted: &["miou", "pq", "depth_rmse"],
+    notes: &[
+        "PQ follows the Panoptic NeRF paper: predicted segments under evaluate's min_segment_px (default 100 px) are relabelled sky and GT segments under it are void before matching",
+        "PQ (panopticapi) scores the same maps as panopticapi and the Cityscapes and KITTI-360 scripts do: every segment counts; compare with other papers in the convention they state",
+    ],
 };
 
 /// Why a scene has no scores: what `metrics.json` and the report say when no image was evaluated.

@@ -528,9 +528,53 @@ fn matrix(out: &mut String, tag: &str, rows: usize, cols: usize, dt: &str, data:
     let _ = writeln!(out, "</data></{tag}>");
 }
 
+/// The `instanceId` of every primitive in the XML: KITTI-360 gives every object its own
+/// (semanticId, instanceId) pair, and its devkit keys objects by `semanticId * 1000 +
+/// instanceId`. Things keep theirs (the instance ids of the GT maps); stuff, which the project
+/// does not tell apart (reading sets it to 0), gets the free ids of its class from 1 up.
+pub fn xml_instance_ids(prims: &[Primitive]) -> Result<Vec<u32>> {
+    use std::collections::{BTreeMap, BTreeSet};
+    let is_thing = |p: &Primitive| labels::by_id(p.label).is_some_and(|l| l.has_instances);
+    let mut used: BTreeMap<u8, BTreeSet<u32>> = BTreeMap::new();
+    for (i, p) in prims.iter().enumerate().filter(|(_, p)| is_thing(p)) {
+        if !used.entry(p.label).or_default().insert(p.instance) {
+            return Err(StageError::Input(format!(
+                "primitive {i}: instance {} of class {} is used by another primitive; \
+                 KITTI-360 needs every object's (semanticId, instanceId) to be unique",
+                p.instance, p.label
+            )));
+        }
+    }
+    let mut next: BTreeMap<u8, u32> = BTreeMap::new();
+    prims
+        .iter()
+        .map(|p| {
+            if is_thing(p) {
+                return Ok(p.instance);
+            }
+            let taken = used.entry(p.label).or_default();
+            let n = next.entry(p.label).or_insert(1);
+            while taken.contains(n) {
+                *n += 1;
+            }
+            if *n >= labels::INSTANCE_FACTOR {
+                return Err(StageError::Input(format!(
+                    "more than {} objects of class {}: KITTI-360 instance ids are below {}",
+                    labels::INSTANCE_FACTOR - 1,
+                    p.label,
+                    labels::INSTANCE_FACTOR
+                )));
+            }
+            taken.insert(*n);
+            Ok(*n)
+        })
+        .collect()
+}
+
 /// The `data_3d_bboxes` XML of the primitives (world frame = scene + `origin`).
 pub fn bboxes_xml(prims: &[Primitive], origin: DVec3, first: u32, last: u32) -> Result<String> {
     let mut s = String::from("<?xml version=\"1.0\"?>\n<opencv_storage>\n");
+    let instance_ids = xml_instance_ids(prims)?;
     for (i, p) in prims.iter().enumerate() {
         let l = labels::by_id(p.label)
             .filter(|l| l.kitti_id >= 0)
@@ -550,7 +594,7 @@ pub fn bboxes_xml(prims: &[Primitive], origin: DVec3, first: u32, last: u32) -> 
         let fd: Vec<String> = f.iter().flatten().map(|x| x.to_string()).collect();
         matrix(&mut s, "faces", f.len(), 3, dt, &fd);
         let _ = writeln!(s, "  <semanticId>{}</semanticId>", l.kitti_id);
-        let _ = writeln!(s, "  <instanceId>{}</instanceId>", p.instance);
+        let _ = writeln!(s, "  <instanceId>{}</instanceId>", instance_ids[i]);
         let _ = writeln!(
             s,
             "  <start_frame>{first}</start_frame>\n  <end_frame>{last}</end_frame>"

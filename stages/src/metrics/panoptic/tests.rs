@@ -156,6 +156,33 @@ fn gt_segment_under_100_px_is_void() {
 }
 
 #[test]
+fn the_panopticapi_convention_counts_every_segment() {
+    let api = config().panopticapi();
+    // The 99 px GT car of the paper's case above is a segment: missed, FN. Road: union
+    // 399 + 300 - 300 = 399, IoU 300/399 > 0.5: TP. PQ = mean(300/399, 0).
+    let r = evaluate(
+        api.clone(),
+        &[(&[(300, ROAD, 0), (99, CAR, 1)], &[(399, ROAD, 0)])],
+    );
+    let car = r.class(CAR).unwrap();
+    assert_eq!((car.tp, car.fp, car.fn_), (0, 0, 1));
+    assert!(close(Some(r.all.unwrap().pq), 300.0 / 399.0 / 2.0));
+    // A 40 px predicted building on GT road stays a building: a false positive (the paper
+    // makes it sky, a false positive of sky there). Road IoU 360/400 either way.
+    let frame: Frame = (&[(400, ROAD, 0)], &[(360, ROAD, 0), (40, BUILDING, 1)]);
+    let r = evaluate(api, &[frame]);
+    let b = r.class(BUILDING).unwrap();
+    assert_eq!((b.tp, b.fp, b.fn_), (0, 1, 0));
+    assert_eq!(r.class(SKY).map(|c| c.fp), Some(0));
+    let paper = evaluate(config(), &[frame]);
+    assert_eq!(paper.class(BUILDING).map(|c| c.fp), Some(0));
+    assert_eq!(paper.class(SKY).map(|c| c.fp), Some(1));
+    for res in [&r, &paper] {
+        assert!(close(res.class(ROAD).unwrap().pq, 0.9));
+    }
+}
+
+#[test]
 fn relabel_small_segments_turns_them_into_sky() {
     // road 150 | car 1: 50 | car 2: 120 | building 1: 99 | sidewalk 30 | void 10
     let (mut sem, mut inst) = strip(&[

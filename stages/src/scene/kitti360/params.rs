@@ -29,7 +29,7 @@ pub struct Kitti360Params {
     pub cameras: Vec<u8>,
     /// Evaluation frames; when empty, every `eval_every`-th selected frame from the first.
     pub eval_frames: Vec<u32>,
-    /// See `eval_frames` (0 = no evaluation frames unless listed).
+    /// See `eval_frames` (at least 1 unless `eval_frames` lists the frames).
     pub eval_every: u32,
     /// `auto`: of those, only images with GT (`gt_semantic`, and `gt_instance` when set) are
     /// evaluated, the others are trained on like any frame (most of KITTI-360 has no 2D GT);
@@ -141,6 +141,17 @@ impl Kitti360Params {
             }
             f
         };
+        if let Some(f) = self
+            .eval_frames
+            .iter()
+            .find(|f| frames.binary_search(f).is_err())
+        {
+            return Err(StageError::Params(format!(
+                "`eval_frames`: frame {f} is not among the selected frames ({}); evaluation \
+                 frames must be frames the scene reads",
+                describe_frames(&frames)
+            )));
+        }
         if frames.is_empty() {
             return Err(err(
                 &self.file(&self.poses),
@@ -187,6 +198,20 @@ impl Kitti360Params {
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
             return bad("`cameras` must list 0 and/or 1".into());
         }
+        if !p.cameras.contains(&0) {
+            return bad(format!(
+                "`cameras` {:?} lacks 0: the pseudo labels, the GT and the evaluation are those \
+                 of the left camera (image_00)",
+                p.cameras
+            ));
+        }
+        if p.eval_frames.is_empty() && p.eval_every == 0 {
+            return bad(
+                "`eval_every` 0 without `eval_frames` selects no evaluation frame: give \
+                 `eval_every` >= 1 or list `eval_frames`"
+                    .into(),
+            );
+        }
         let mut c = p.cameras.clone();
         c.sort_unstable();
         c.dedup();
@@ -203,5 +228,14 @@ impl Kitti360Params {
             return bad("`origin` must be finite".into());
         }
         Ok(())
+    }
+}
+
+/// `a..=b (n frames)`, or the list when short, for messages.
+fn describe_frames(frames: &[u32]) -> String {
+    match frames {
+        [] => "none".to_string(),
+        [a, .., b] if frames.len() > 8 => format!("{a}..={b}, {} frames", frames.len()),
+        _ => format!("{frames:?}"),
     }
 }

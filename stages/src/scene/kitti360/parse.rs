@@ -21,7 +21,33 @@ pub fn err(path: &Path, what: impl std::fmt::Display) -> StageError {
 
 /// The whole file as text; a missing or unreadable file is an error naming it.
 pub fn read_text(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))
+    let bytes = read_bytes(path)?;
+    let text = String::from_utf8(bytes)
+        .map_err(|e| err(path, format!("cannot read: not UTF-8 text: {e}")))?;
+    // Editors on Windows write a byte order mark; it is not part of the first key.
+    Ok(match text.strip_prefix('\u{feff}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
+}
+
+/// The bytes of an input file. Only a regular file is read: a FIFO would block forever, a
+/// directory or device is a mistake in a path parameter.
+pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    use std::os::unix::fs::FileTypeExt;
+    let t = std::fs::metadata(path)
+        .map_err(|e| err(path, format!("cannot read: {e}")))?
+        .file_type();
+    let what = if t.is_file() {
+        return std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")));
+    } else if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO (named pipe)"
+    } else {
+        "not a regular file"
+    };
+    Err(err(path, format!("is {what}, expected a regular file")))
 }
 
 fn parse_f64(path: &Path, at: &str, tok: &str) -> Result<f64> {
@@ -53,6 +79,7 @@ fn check_rotation(path: &Path, at: &str, m: &DMat3) -> Result<()> {
 /// numbers) is accepted with the bottom row implied.
 pub fn poses(path: &Path, text: &str) -> Result<BTreeMap<u32, DAffine3>> {
     let mut out = BTreeMap::new();
+    let mut lines = BTreeMap::new();
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
         if line.is_empty() {
@@ -88,12 +115,63 @@ pub fn poses(path: &Path, text: &str) -> Result<BTreeMap<u32, DAffine3>> {
         if out.insert(frame, m).is_some() {
             return Err(err(path, format!("{at}: frame {frame} is listed twice")));
         }
+        lines.insert(frame, i + 1);
     }
     if out.is_empty() {
         return Err(err(path, "no poses in the file"));
     }
+    check_trajectory(path, &out, &lines)?;
     Ok(out)
 }
+
+/// The farthest a camera may move per frame: a car at 10 Hz moves a few metres; this is
+/// 1000 m/s, so only a broken pose exceeds it.
+pub const MAX_STEP_M_PER_FRAME: f64 = 100.0;
+
+/// Consecutive poses (by frame number) are at most [`MAX_STEP_M_PER_FRAME`] per frame apart.
+/// A jump names the frame of the two that is farther from the sequence's median position (an
+/// outlier moves away and back; the median ignores it).
+fn check_trajectory(
+    path: &Path,
+    poses: &BTreeMap<u32, DAffine3>,
+    lines: &BTreeMap<u32, usize>,
+) -> Result<()> {
+    let median = |axis: usize| {
+        let mut v: Vec<f64> = poses.values().map(|p| p.translation[axis]).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let centre = DVec3::new(median(0), median(1), median(2));
+    let frames: Vec<(&u32, &DAffine3)> = poses.iter().collect();
+    for pair in frames.windows(2) {
+        let ((&fa, a), (&fb, b)) = (pair[0], pair[1]);
+        let step = a.translation.distance(b.translation);
+        let gap = f64::from(fb - fa);
+        if step.is_finite() && step <= MAX_STEP_M_PER_FRAME * gap {
+            continue;
+        }
+        let far_a = a.translation.distance(centre) > b.translation.distance(centre);
+        let (bad, other) = if far_a { (fa, fb) } else { (fb, fa) };
+        let pos = poses[&bad].translation;
+        return Err(err(
+            path,
+            format!(
+                "line {} (frame {bad}): the camera is at ({:.6e}, {:.6e}, {:.6e}), {step:.3e} m \
+                 from frame {other} ({gap} frames apart) and {:.3e} m from the sequence's median \
+                 position; a pose may move at most {MAX_STEP_M_PER_FRAME} m per frame",
+                lines[&bad],
+                pos.x,
+                pos.y,
+                pos.z,
+                pos.distance(centre),
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The largest image width or height `S_rect_00` may give.
+pub const MAX_IMAGE_SIDE: u32 = 100_000;
 
 /// `KEY: numbers` lines (perspective.txt, calib_cam_to_velo.txt without key).
 fn keyed(path: &Path, text: &str) -> Result<BTreeMap<String, (usize, Vec<f64>)>> {
@@ -108,6 +186,13 @@ fn keyed(path: &Path, text: &str) -> Result<BTreeMap<String, (usize, Vec<f64>)>>
             .split_whitespace()
             .map(|t| parse_f64(path, &at, t))
             .collect::<Result<Vec<f64>>>();
+        if let Some((first, _)) = out.get(&key) {
+            // Which one was meant? (Duplicate pose frames are an error for the same reason.)
+            return Err(err(
+                path,
+                format!("{at}: `{key}` is given twice (first on line {first})"),
+            ));
+        }
         // Lines we do not use (calib_time, ...) may hold anything.
         match v {
             Ok(v) => {
@@ -169,10 +254,19 @@ pub fn perspective(path: &Path, text: &str) -> Result<Perspective> {
         None => DMat3::IDENTITY,
     };
     let size = |v: f64, what: &str| -> Result<u32> {
-        if v.fract() != 0.0 || !(1.0..=1.0e5).contains(&v) {
+        if v.fract() != 0.0 || v < 1.0 {
             return Err(err(
                 path,
                 format!("`S_rect_00`: {what} {v} is not a positive whole number of pixels"),
+            ));
+        }
+        if v > MAX_IMAGE_SIDE as f64 {
+            return Err(err(
+                path,
+                format!(
+                    "`S_rect_00`: {what} {v} is more than {MAX_IMAGE_SIDE} pixels, the largest \
+                     image side this tool reads (KITTI-360's are 1408x376)"
+                ),
             ));
         }
         Ok(v as u32)
@@ -398,7 +492,7 @@ pub fn bboxes(path: &Path, text: &str) -> Result<Vec<XmlObject>> {
 
 /// Decodes a PNG; a missing, truncated or corrupt file is an error naming it.
 pub fn png(path: &Path) -> Result<image::DynamicImage> {
-    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    let bytes = read_bytes(path)?;
     image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
         err(
             path,
@@ -482,7 +576,7 @@ pub fn gray16(path: &Path, w: u32, h: u32, what: &str) -> Result<Vec<u16>> {
 
 /// A velodyne scan: float32 N x 4 (x, y, z, intensity), little-endian.
 pub fn velodyne(path: &Path) -> Result<Vec<DVec3>> {
-    let bytes = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    let bytes = read_bytes(path)?;
     if bytes.len() % 16 != 0 {
         return Err(err(
             path,

@@ -422,10 +422,34 @@ fn bad_params_are_rejected() {
             "`max_distance_m`",
         ),
         (serde_json::json!({"rooot": "x"}), "rooot"),
+        (serde_json::json!({"cameras": [1]}), "`cameras` [1] lacks 0"),
+        (
+            serde_json::json!({"eval_every": 0}),
+            "`eval_every` 0 without `eval_frames`",
+        ),
     ] {
         let e = Stage::canonical_params(&s, &json).unwrap_err().to_string();
         assert!(e.contains(needle), "{e}");
     }
+    // Listed evaluation frames need no eval_every.
+    let ok = serde_json::json!({"eval_every": 0, "eval_frames": [3]});
+    assert!(Stage::canonical_params(&s, &ok).is_ok());
+}
+
+/// An evaluation frame the scene does not read is an error of the params, found when the
+/// runner lists the input files (before any stage runs), naming the setting and the frame.
+#[test]
+fn evaluation_frames_outside_the_selection_are_refused_before_running() {
+    let (root, mut p) = fixture("eval-frames");
+    p.eval_frames = vec![7, 12]; // 12 has a pose but is outside [0, 10]
+    let e = input_files(&p).unwrap_err().to_string();
+    assert!(
+        e.contains("`eval_frames`: frame 12 is not among the selected frames ([3, 7])"),
+        "{e}"
+    );
+    p.eval_frames = vec![7];
+    assert!(input_files(&p).is_ok());
+    std::fs::remove_dir_all(root).unwrap();
 }
 
 /// Turns on `lidar` and writes a one-point scan for frames 3 and 7 (both evaluation frames):
@@ -735,4 +759,106 @@ fn the_intersect_stage_gives_the_same_first_primitive_labels_on_the_round_trip()
     // Against the exact ellipsoids, only silhouettes of tree crowns differ.
     assert!(frac > 0.99, "{frac}");
     assert!((ma - mb).abs() < 1.0, "{ma} vs {mb}");
+}
+
+#[test]
+fn text_files_with_a_byte_order_mark_read_as_without() {
+    let (root, p) = fixture("bom");
+    let plain = run(&p).unwrap();
+    for file in [
+        "calibration/perspective.txt",
+        "data_poses/seq_a/cam0_to_world.txt",
+    ] {
+        let text = std::fs::read_to_string(root.join(file)).unwrap();
+        std::fs::write(root.join(file), format!("\u{feff}{text}")).unwrap();
+    }
+    let with_bom = run(&p).unwrap();
+    for (name, t) in &plain {
+        assert_eq!(t, &with_bom[name], "table {name}");
+    }
+    std::fs::remove_dir_all(root).unwrap();
+}
+
+#[test]
+fn a_pose_far_from_the_rest_names_the_frame_wherever_it_is() {
+    let step = |x: f64| format!("1 0 0 {x} 0 1 0 20 0 0 1 1 0 0 0 1");
+    let path = Path::new("poses.txt");
+    // The outlier first, in the middle and last; 1e30 m and 5 km (after 2 frames) away.
+    for (xs, bad) in [
+        ([1e30, 0.0, 1.0, 2.0], 3),
+        ([0.0, 1.0, 5000.0, 2.0], 9),
+        ([0.0, 1.0, 2.0, -1e30], 12),
+    ] {
+        let text: String = [3, 5, 9, 12]
+            .iter()
+            .zip(xs)
+            .map(|(f, x)| format!("{f} {}\n", step(x)))
+            .collect();
+        let e = parse::poses(path, &text).unwrap_err().to_string();
+        assert!(e.contains(&format!("(frame {bad})")), "{xs:?}: {e}");
+        assert!(e.contains("at most 100 m per frame"), "{e}");
+    }
+    // 90 m per frame of gap is a fast car, but possible; 5 km over 100 frames too.
+    let ok: String = [(0, 0.0), (1, 90.0), (101, 5090.0)]
+        .iter()
+        .map(|(f, x)| format!("{f} {}\n", step(*x)))
+        .collect();
+    assert_eq!(parse::poses(path, &ok).unwrap().len(), 3);
+}
+
+/// The exported XML read the way KITTI-360's devkit reads it (`Annotation3D`, written here
+/// from its description rather than with our reader): every `<objectN>` keyed by `globalId =
+/// semanticId * 1000 + instanceId`, one object per key and timestamp. Every primitive must
+/// survive as its own object, and things keep their instance ids.
+#[test]
+fn the_exported_bboxes_keep_every_object_apart_for_the_devkit() {
+    let sp = SceneParams::default();
+    let synth = crate::scene::synthetic::to_tables(
+        &sp,
+        &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
+    )
+    .unwrap();
+    let root = temp("devkit-ids");
+    kitti360_export::write(&synth, &root).unwrap();
+    let xml_path = root.join(format!("data_3d_bboxes/train/{}.xml", sp.sequence));
+    let text = std::fs::read_to_string(&xml_path).unwrap();
+    let doc = roxmltree::Document::parse(&text).unwrap();
+    let field = |obj: roxmltree::Node, tag: &str| -> i64 {
+        obj.children()
+            .find(|c| c.has_tag_name(tag))
+            .and_then(|c| c.text())
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap()
+    };
+    let mut objects = std::collections::BTreeMap::new();
+    let mut listed = 0;
+    for obj in doc
+        .root_element()
+        .children()
+        .filter(|c| c.is_element() && c.tag_name().name().starts_with("object"))
+    {
+        listed += 1;
+        let kitti_id = field(obj, "semanticId");
+        let global = kitti_id * 1000 + field(obj, "instanceId");
+        objects.insert((global, field(obj, "timestamp")), field(obj, "index"));
+    }
+    let prims = primitives_from_table(&synth["primitives"]).unwrap();
+    assert!(prims.len() > 100, "the default street has many primitives");
+    assert_eq!(listed, prims.len());
+    assert_eq!(
+        objects.len(),
+        prims.len(),
+        "objects sharing (semanticId, instanceId)"
+    );
+    // Things: the instance id of the primitive (as in the GT instance maps).
+    for (i, p) in prims.iter().enumerate() {
+        let l = labels::by_id(p.label).unwrap();
+        if l.has_instances {
+            let global = i64::from(l.kitti_id) * 1000 + i64::from(p.instance);
+            assert_eq!(objects.get(&(global, -1)), Some(&(i as i64)), "thing {i}");
+        }
+    }
+    std::fs::remove_dir_all(root).unwrap();
 }
