@@ -125,15 +125,21 @@ impl Input<'_> {
             .iter()
             .find(|r| score(r).is_some_and(|m| m >= reference - 1.0 / headline.scale))?;
         let label = headline.label;
+        let goal = match self.suite.goal_train_s {
+            Some(g) if self.train_wall(first) <= g => {
+                format!(" (within the goal of at most {g} s)")
+            }
+            Some(g) => format!(" (over the goal of at most {g} s)"),
+            None => String::new(),
+        };
         Some(format!(
-            "Speed to the goal: the largest budget ({} steps, {:.1} s of training) reaches {} {label}; the first budget within 1 {label} of it is {} steps, {} {label} after {:.1} s of training ({} the goal of at most 60 s).",
+            "Speed to the goal: the largest budget ({} steps, {:.1} s of training) reaches {} {label}; the first budget within 1 {label} of it is {} steps, {} {label} after {:.1} s of training{goal}.",
             last.budget,
             self.train_wall(last),
             cell(Some(reference), headline),
             first.budget,
             cell(score(first), headline),
             self.train_wall(first),
-            if self.train_wall(first) <= 60.0 { "within" } else { "over" },
         ))
     }
 }

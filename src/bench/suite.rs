@@ -73,6 +73,8 @@ struct SuiteFile {
     variants: Vec<VariantFile>,
     #[serde(default)]
     overhead_repeats: Option<usize>,
+    #[serde(default)]
+    goal_train_s: Option<f64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -177,6 +179,9 @@ pub struct Suite {
     pub paper: Option<Paper>,
     pub variants: Vec<Variant>,
     pub overhead_repeats: usize,
+    /// `goal_train_s:`: the training time the suite's scenes should come near their best
+    /// within (the report says whether they did); none: no goal.
+    pub goal_train_s: Option<f64>,
 }
 
 /// Whether `--suite` names a file rather than a built-in suite.
@@ -334,6 +339,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         paper,
         variants,
         overhead_repeats: raw.overhead_repeats.unwrap_or(5).max(1),
+        goal_train_s: raw.goal_train_s.filter(|g| g.is_finite() && *g > 0.0),
     })
 }
 

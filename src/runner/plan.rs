@@ -55,10 +55,11 @@ pub fn external_digests(p: &Pipeline, store: &Store) -> Result<HashMap<usize, St
         // Before hashing: a directory would be hashed recursively (a whole data set root) and a
         // FIFO would block the read forever.
         for path in &paths {
-            if let Some(problem) = not_a_file(path) {
+            if let Some(what) = stages::input_file::not_regular(path) {
+                let problem = format!("{}: is {what}, expected a regular file", path.display());
                 return Err(RunError::ExternalInputs {
                     stage: s.name.clone(),
-                    source: stages::StageError::Input(format!("{}: {problem}", path.display())),
+                    source: stages::StageError::Input(problem),
                 });
             }
         }
@@ -67,27 +68,6 @@ pub fn external_digests(p: &Pipeline, store: &Store) -> Result<HashMap<usize, St
         }
     }
     Ok(out)
-}
-
-/// Why `path` cannot be read as an input file, if it exists and is not a regular file (a
-/// missing file is left to the stage, which says which input it is).
-fn not_a_file(path: &std::path::Path) -> Option<String> {
-    use std::os::unix::fs::FileTypeExt;
-    let t = std::fs::metadata(path).ok()?.file_type();
-    let what = if t.is_file() {
-        return None;
-    } else if t.is_dir() {
-        "a directory"
-    } else if t.is_fifo() {
-        "a FIFO (named pipe)"
-    } else if t.is_socket() {
-        "a socket"
-    } else if t.is_block_device() || t.is_char_device() {
-        "a device"
-    } else {
-        "not a regular file"
-    };
-    Some(format!("is {what}, expected a regular file"))
 }
 
 /// The key of stage `i` given the output digests of its upstream stages; `None` while one of

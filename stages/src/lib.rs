@@ -16,6 +16,7 @@
 
 pub mod error;
 pub mod geometry;
+pub mod input_file;
 pub mod intervals;
 pub mod kinds;
 pub mod labels;

@@ -237,9 +237,9 @@ impl ClassRows {
 }
 
 /// Metric names ending in this (`pq_panopticapi`, `pq_things_panopticapi`, ...) score the
-/// panoptic maps as panopticapi does: every predicted and GT segment counts, however small.
-/// Without it (`pq`, ...): the Panoptic NeRF paper's convention, where predicted segments
-/// under `min_segment_px` become sky and GT segments under it are void.
+/// panoptic maps as panopticapi does: every predicted segment counts, however small. Without
+/// it (`pq`, ...): the Panoptic NeRF paper's convention, where predicted segments under
+/// `min_segment_px` become sky first. In both, GT segments under it are void (the exported GT).
 pub const PANOPTICAPI_SUFFIX: &str = "_panopticapi";
 
 /// What each PQ convention means, as `metrics.json` states it.
@@ -250,7 +250,7 @@ pub const PQ_CONVENTIONS: &[(&str, &str)] = &[
     ),
     (
         "pq_panopticapi",
-        "panopticapi (COCO; the Cityscapes and KITTI-360 scripts): every segment counts, no relabelling",
+        "panopticapi (COCO; the Cityscapes and KITTI-360 scripts): predicted segments as they are, no relabelling; the same GT (segments under min_segment_px void, as exported)",
     ),
 ];
 

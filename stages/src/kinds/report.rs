@@ -215,10 +215,10 @@ impl Page {
         }
         html.push_str("</table>");
         let note = "PQ, SQ, RQ, PQ th/st and PQ† follow the Panoptic NeRF paper (predicted \
-                    segments under evaluate's min_segment_px, default 100 px, become sky; GT \
-                    segments under it are void); PQ api \
-                    scores the same maps as panopticapi and the KITTI-360 scripts do (every \
-                    segment counts). Compare with other papers in the convention they state.";
+                    segments under evaluate's min_segment_px, default 100 px, become sky before \
+                    matching); PQ api scores the same maps against the same GT as panopticapi \
+                    and the KITTI-360 scripts do (predicted segments as they are). Compare with \
+                    other papers in the convention they state.";
         md.push_str(&format!("\n{note}\n\n"));
         let _ = write!(html, "<p class=\"cap\">{note}</p>");
     }

@@ -219,7 +219,10 @@ impl LogColumns {
 fn nothing_crossed(inputs: &Inputs, cameras: &[u8]) -> Result<String> {
     let rows = crate::geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let prims = crate::geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
-    let used: Vec<_> = rows.iter().filter(|r| cameras.contains(&r.camera)).collect();
+    let used: Vec<_> = rows
+        .iter()
+        .filter(|r| cameras.contains(&r.camera))
+        .collect();
     let frames: std::collections::BTreeSet<u32> = used.iter().map(|r| r.frame).collect();
     let nearest = used
         .iter()

@@ -64,10 +64,11 @@ impl Default for PanopticConfig {
 
 impl PanopticConfig {
     /// These classes scored as panopticapi scores them (and the Cityscapes and KITTI-360
-    /// scripts built on it): every predicted and GT segment counts, however small.
+    /// scripts built on it): predicted segments are taken as they are, however small. The GT
+    /// stays what this evaluation defines (segments under `min_gt_segment_px` void), as in
+    /// the GT maps `evaluate` exports, so both conventions score against the same GT.
     pub fn panopticapi(self) -> Self {
         Self {
-            min_gt_segment_px: 0,
             min_pred_segment_px: None,
             ..self
         }

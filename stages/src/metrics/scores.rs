@@ -76,7 +76,7 @@ pub const SCORES: ScoreSpec = ScoreSpec {
     plotted: &["miou", "pq", "depth_rmse"],
     notes: &[
         "PQ follows the Panoptic NeRF paper: predicted segments under evaluate's min_segment_px (default 100 px) are relabelled sky and GT segments under it are void before matching",
-        "PQ (panopticapi) scores the same maps as panopticapi and the Cityscapes and KITTI-360 scripts do: every segment counts; compare with other papers in the convention they state",
+        "PQ (panopticapi) scores the same maps against the same GT as panopticapi and the Cityscapes and KITTI-360 scripts do: predicted segments as they are, however small; compare with other papers in the convention they state",
     ],
 };
 

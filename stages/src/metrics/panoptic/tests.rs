@@ -156,21 +156,12 @@ fn gt_segment_under_100_px_is_void() {
 }
 
 #[test]
-fn the_panopticapi_convention_counts_every_segment() {
+fn the_panopticapi_convention_keeps_small_predicted_segments() {
     let api = config().panopticapi();
-    // The 99 px GT car of the paper's case above is a segment: missed, FN. Road: union
-    // 399 + 300 - 300 = 399, IoU 300/399 > 0.5: TP. PQ = mean(300/399, 0).
-    let r = evaluate(
-        api.clone(),
-        &[(&[(300, ROAD, 0), (99, CAR, 1)], &[(399, ROAD, 0)])],
-    );
-    let car = r.class(CAR).unwrap();
-    assert_eq!((car.tp, car.fp, car.fn_), (0, 0, 1));
-    assert!(close(Some(r.all.unwrap().pq), 300.0 / 399.0 / 2.0));
     // A 40 px predicted building on GT road stays a building: a false positive (the paper
     // makes it sky, a false positive of sky there). Road IoU 360/400 either way.
     let frame: Frame = (&[(400, ROAD, 0)], &[(360, ROAD, 0), (40, BUILDING, 1)]);
-    let r = evaluate(api, &[frame]);
+    let r = evaluate(api.clone(), &[frame]);
     let b = r.class(BUILDING).unwrap();
     assert_eq!((b.tp, b.fp, b.fn_), (0, 1, 0));
     assert_eq!(r.class(SKY).map(|c| c.fp), Some(0));
@@ -180,6 +171,24 @@ fn the_panopticapi_convention_counts_every_segment() {
     for res in [&r, &paper] {
         assert!(close(res.class(ROAD).unwrap().pq, 0.9));
     }
+    // A small predicted car on a large GT car: the paper loses the match (sky), panopticapi
+    // keeps it. GT car 150 px, predicted car 1: 90 px inside it, road elsewhere.
+    // api: car IoU 90/150 = 0.6 > 0.5, TP; road: pred 310, GT 250, IoU 250/310.
+    let frame: Frame = (
+        &[(250, ROAD, 0), (150, CAR, 1)],
+        &[(250, ROAD, 0), (60, ROAD, 0), (90, CAR, 1)],
+    );
+    let r = evaluate(api.clone(), &[frame]);
+    let car = r.class(CAR).unwrap();
+    assert_eq!((car.tp, car.fp, car.fn_), (1, 0, 0));
+    assert!(close(car.pq, 0.6));
+    assert!(close(r.class(ROAD).unwrap().pq, 250.0 / 310.0));
+    let paper = evaluate(config(), &[frame]);
+    let car = paper.class(CAR).unwrap();
+    assert_eq!((car.tp, car.fp, car.fn_), (0, 0, 1));
+    // GT segments under min_gt_segment_px stay void in both (the evaluated GT is the same).
+    let small_gt: Frame = (&[(300, ROAD, 0), (99, CAR, 1)], &[(399, ROAD, 0)]);
+    assert_eq!(evaluate(api, &[small_gt]).all.unwrap().pq, 1.0);
 }
 
 #[test]

@@ -31,23 +31,12 @@ pub fn read_text(path: &Path) -> Result<String> {
     })
 }
 
-/// The bytes of an input file. Only a regular file is read: a FIFO would block forever, a
-/// directory or device is a mistake in a path parameter.
+/// The bytes of an input file (a regular file only: see [`crate::input_file`]).
 pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
-    use std::os::unix::fs::FileTypeExt;
-    let t = std::fs::metadata(path)
-        .map_err(|e| err(path, format!("cannot read: {e}")))?
-        .file_type();
-    let what = if t.is_file() {
-        return std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")));
-    } else if t.is_dir() {
-        "a directory"
-    } else if t.is_fifo() {
-        "a FIFO (named pipe)"
-    } else {
-        "not a regular file"
-    };
-    Err(err(path, format!("is {what}, expected a regular file")))
+    if let Some(what) = crate::input_file::not_regular(path) {
+        return Err(err(path, format!("is {what}, expected a regular file")));
+    }
+    std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))
 }
 
 fn parse_f64(path: &Path, at: &str, tok: &str) -> Result<f64> {
