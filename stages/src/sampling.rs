@@ -238,6 +238,39 @@ pub fn fixed_instance_at(prims: &PrimInfo, iv: &Intervals, t: f32, out: &mut [f3
     count > 0
 }
 
+/// The non-zero entries of [`fixed_semantic_at`] and [`fixed_instance_at`] at `t`, which share
+/// their weight equally: the distinct class indices (the sky class alone inside the sky
+/// interval when no interval contains `t`) and the distinct thing indices. At most one entry per
+/// interval, where the dense distributions have one per class and per thing instance: what
+/// rendering adds up per sample.
+pub fn fixed_members_at(
+    prims: &PrimInfo,
+    iv: &Intervals,
+    t: f32,
+    classes: &mut Vec<usize>,
+    things: &mut Vec<usize>,
+) {
+    classes.clear();
+    things.clear();
+    for j in 0..iv.t_in.len() {
+        if t >= iv.t_in[j] && t <= iv.t_out[j] {
+            let prim = iv.prim[j] as usize;
+            let c = prims.prim_class[prim] as usize;
+            if !classes.contains(&c) {
+                classes.push(c);
+            }
+            let th = prims.prim_thing[prim];
+            if th != u32::MAX && !things.contains(&(th as usize)) {
+                things.push(th as usize);
+            }
+        }
+    }
+    let [s0, s1] = iv.sky;
+    if classes.is_empty() && t >= s0 && t <= s1 && s1 > s0 {
+        classes.push(prims.sky_class());
+    }
+}
+
 /// Rays per parallel part of a batch.
 const CHUNK: usize = 128;
 

@@ -10,7 +10,7 @@
 //! probability in both semantic renderings.
 
 use crate::labels;
-use crate::sampling::{fixed_instance_at, fixed_semantic_at, Intervals, PrimInfo};
+use crate::sampling::{fixed_members_at, Intervals, PrimInfo};
 
 /// Transmittance below which the rest of a ray is skipped.
 pub const EARLY_STOP_T: f32 = 1e-4;
@@ -93,8 +93,9 @@ pub struct Compositor<'p> {
     prims: &'p PrimInfo,
     sky: usize,
     prob: Vec<f32>,
-    fixed: Vec<f32>,
-    fixed_inst: Vec<f32>,
+    /// The classes and thing instances of the fixed fields at the current sample.
+    fixed: Vec<usize>,
+    fixed_inst: Vec<usize>,
 }
 
 impl<'p> Compositor<'p> {
@@ -102,8 +103,8 @@ impl<'p> Compositor<'p> {
         Self {
             sky: prims.sky_class(),
             prob: vec![0.0; prims.classes.len()],
-            fixed: vec![0.0; prims.classes.len()],
-            fixed_inst: vec![0.0; prims.things.len()],
+            fixed: Vec::new(),
+            fixed_inst: Vec::new(),
             prims,
         }
     }
@@ -149,16 +150,23 @@ impl<'p> Compositor<'p> {
         ray.wsum += w;
         let c_n = self.prims.classes.len();
         softmax_fast(logits, &mut self.prob);
-        fixed_semantic_at(self.prims, iv, t, &mut self.fixed);
-        fixed_instance_at(self.prims, iv, t, &mut self.fixed_inst);
         let (s, rest) = sums.split_at_mut(c_n);
         let (s_hat, inst) = rest.split_at_mut(c_n);
         for c in 0..c_n {
             s[c] += w * self.prob[c];
-            s_hat[c] += w * self.fixed[c];
         }
-        for (a, &b) in inst.iter_mut().zip(self.fixed_inst.iter()) {
-            *a += w * b;
+        // The fixed fields are equal shares over a few classes and instances: add only those
+        // (the zero entries of the dense distributions would add exactly 0).
+        fixed_members_at(self.prims, iv, t, &mut self.fixed, &mut self.fixed_inst);
+        for (members, out) in [(&self.fixed, s_hat), (&self.fixed_inst, inst)] {
+            let share = match members.len() {
+                0 => continue,
+                1 => 1.0,
+                n => 1.0 / n as f32,
+            };
+            for &m in members.iter() {
+                out[m] += w * share;
+            }
         }
         true
     }

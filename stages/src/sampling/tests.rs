@@ -99,6 +99,43 @@ fn fixed_fields_follow_the_intervals() {
     assert!(!fixed_instance_at(prims, &iv, 8.0, &mut inst));
 }
 
+/// The sparse members are exactly the non-zero entries of the dense distributions, with the
+/// same equal share, at every sample of many random plans.
+#[test]
+fn fixed_members_are_the_non_zero_entries_of_the_fixed_fields() {
+    let set = many();
+    let prims = &set.prims;
+    let (mut cls, mut th) = (Vec::new(), Vec::new());
+    let mut dense = vec![0f32; prims.classes.len()];
+    let mut dense_inst = vec![0f32; prims.things.len()];
+    let mut checked = 0;
+    for r in 0..set.len() {
+        let iv = set.intervals(r);
+        for k in 0..200 {
+            let t = k as f32 * 0.37;
+            fixed_semantic_at(prims, &iv, t, &mut dense);
+            fixed_instance_at(prims, &iv, t, &mut dense_inst);
+            fixed_members_at(prims, &iv, t, &mut cls, &mut th);
+            for (members, d) in [(&cls, &dense), (&th, &dense_inst)] {
+                let share = if members.len() > 1 {
+                    1.0 / members.len() as f32
+                } else {
+                    1.0
+                };
+                for (i, &v) in d.iter().enumerate() {
+                    let want = if members.contains(&i) { share } else { 0.0 };
+                    assert_eq!(v.to_bits(), want.to_bits(), "ray {r} t {t} entry {i}");
+                }
+            }
+            checked += cls.len() + th.len();
+        }
+    }
+    assert!(
+        checked > 1000,
+        "the plans cross primitives and things: {checked}"
+    );
+}
+
 #[test]
 fn samples_stay_inside_primitives_and_strata_tile_them() {
     let set = toy();
