@@ -152,8 +152,8 @@ impl<'p> Compositor<'p> {
         softmax_fast(logits, &mut self.prob);
         let (s, rest) = sums.split_at_mut(c_n);
         let (s_hat, inst) = rest.split_at_mut(c_n);
-        for c in 0..c_n {
-            s[c] += w * self.prob[c];
+        for (sc, &p) in s.iter_mut().zip(&self.prob) {
+            *sc += w * p;
         }
         // The fixed fields are equal shares over a few classes and instances: add only those
         // (the zero entries of the dense distributions would add exactly 0).
