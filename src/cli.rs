@@ -293,12 +293,23 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             if executor == ExecutorKind::Slurm && p.scenes.is_empty() {
                 return Err(ExecutorError::NoScenes(p.file.clone()).into());
             }
-            // A local dry run lists every stage of every scene in order, in process.
-            let dry_local = opts.dry_run && executor == ExecutorKind::Local;
-            if !p.scenes.is_empty()
-                && !dry_local
-                && (executor == ExecutorKind::Slurm || (jobs > 1 && several))
-            {
+            // A dry run lists every stage of every scene in order, in process; on Slurm it
+            // then shows the job array it would submit.
+            if opts.dry_run {
+                let code = cmd_run(p.clone(), &opts)?;
+                if executor == ExecutorKind::Slurm {
+                    let exec = ExecOptions {
+                        kind: executor,
+                        jobs,
+                        retries,
+                        run: opts,
+                        set: pipeline.set.clone(),
+                    };
+                    executor::run_scenes(p, &exec)?;
+                }
+                return Ok(code);
+            }
+            if !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several)) {
                 let exec = ExecOptions {
                     kind: executor,
                     jobs,

@@ -91,6 +91,20 @@ executor:
   slurm: {poll_s: 0.3, cpus_per_task: 1, job_name: pipe-interrupt-test}
 ",
     );
+    // A dry run lists every stage it would run and submits nothing.
+    let (code, out, err) = ws.run(&["--executor", "slurm", "--dry-run"]);
+    assert_eq!(code, 0, "{out}{err}");
+    for stage in ["a@value1", "a@value2"] {
+        assert!(
+            out.lines()
+                .any(|l| l.starts_with(stage) && l.contains("would run")),
+            "{stage}: {out}"
+        );
+    }
+    assert!(
+        !squeue_jobs().contains("pipe-interrupt-test"),
+        "a dry run submitted a job"
+    );
     let mut coord = Command::new(pipe)
         .args(["run", "--executor", "slurm"])
         .current_dir(ws.dir())
