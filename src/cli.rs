@@ -293,23 +293,16 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             if executor == ExecutorKind::Slurm && p.scenes.is_empty() {
                 return Err(ExecutorError::NoScenes(p.file.clone()).into());
             }
+            let matrix =
+                !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several));
             // A dry run lists every stage of every scene in order, in process; on Slurm it
             // then shows the job array it would submit.
-            if opts.dry_run {
-                let code = cmd_run(p.clone(), &opts)?;
-                if executor == ExecutorKind::Slurm {
-                    let exec = ExecOptions {
-                        kind: executor,
-                        jobs,
-                        retries,
-                        run: opts,
-                        set: pipeline.set.clone(),
-                    };
-                    executor::run_scenes(p, &exec)?;
-                }
-                return Ok(code);
-            }
-            if !p.scenes.is_empty() && (executor == ExecutorKind::Slurm || (jobs > 1 && several)) {
+            let dry_listing = if opts.dry_run {
+                Some(cmd_run(p.clone(), &opts)?)
+            } else {
+                None
+            };
+            if matrix && (dry_listing.is_none() || executor == ExecutorKind::Slurm) {
                 let exec = ExecOptions {
                     kind: executor,
                     jobs,
@@ -317,7 +310,11 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                     run: opts,
                     set: pipeline.set.clone(),
                 };
-                return Ok(executor::run_scenes(p, &exec)?);
+                let code = executor::run_scenes(p, &exec)?;
+                return Ok(dry_listing.unwrap_or(code));
+            }
+            if let Some(code) = dry_listing {
+                return Ok(code);
             }
             cmd_run(p, &opts)
         }
