@@ -46,10 +46,14 @@ pub struct RenderParams {
     /// checks the fit and labels nothing; it costs ~15 % of rendering. Images without one have
     /// an empty `rgb`.
     pub colour: Colour,
-    /// Render every second pixel of every second row first, then only the pixels where those
-    /// disagree (labels, or the primitives crossed); the others take their labels and
-    /// interpolate depth, confidence and colour. About 2x faster; `false` renders every pixel.
+    /// Render a coarse grid of pixels first (every `coarse_stride`-th pixel of every
+    /// `coarse_stride`-th row), then, halving the spacing, only the pixels where the coarser grid
+    /// disagrees (labels, or the primitives crossed); the others take their labels and
+    /// interpolate depth, confidence and colour. `false` renders every pixel.
     pub adaptive: bool,
+    /// Spacing of that first grid: a power of two from 1 to 16. On full-size street images 4
+    /// renders 2.4x faster than every pixel (2: 2.0x) and 0.1 % of the labels differ.
+    pub coarse_stride: u32,
 }
 
 /// Which images [`RenderParams::colour`] renders in colour.
@@ -90,6 +94,7 @@ impl Default for RenderParams {
             frames: Vec::new(),
             colour: Colour::NovelViews,
             adaptive: true,
+            coarse_stride: 4,
         }
     }
 }
@@ -204,7 +209,7 @@ fn plan_params(plan: &Table) -> Result<IntersectParams> {
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const INPUTS: &'static [InputSlot] = &[
@@ -232,6 +237,12 @@ impl TypedStage for Render {
     fn validate(p: &RenderParams) -> Result<()> {
         if p.chunk == 0 {
             return Err(StageError::Params("`chunk` must be at least 1".into()));
+        }
+        if !(p.coarse_stride.is_power_of_two() && p.coarse_stride <= 16) {
+            return Err(StageError::Params(format!(
+                "`coarse_stride` must be 1, 2, 4, 8 or 16, not {}",
+                p.coarse_stride
+            )));
         }
         if p.novel_views.len() > (u8::MAX - NOVEL_CAMERA_BASE) as usize {
             return Err(StageError::Params(format!(
@@ -284,6 +295,7 @@ impl TypedStage for Render {
                 semantics: true,
             },
             adaptive: p.adaptive,
+            coarse_stride: p.coarse_stride,
         };
         let r = renderer(p.colour == Colour::All);
         // One image at a time: its plan is read, it is rendered and its maps are stored before

@@ -21,9 +21,11 @@ pub struct Renderer<'a> {
     pub chunk: usize,
     /// The heads evaluated (without colour the colour map is the sky colour).
     pub heads: Heads,
-    /// Render every second pixel first and the rest only where those disagree (see
+    /// Render a coarse grid of pixels first and the rest only where those disagree (see
     /// [`render_image`]); `false` renders every pixel.
     pub adaptive: bool,
+    /// Spacing of that first grid (a power of two; 1 renders every pixel).
+    pub coarse_stride: u32,
 }
 
 /// The rendered maps of one image, row-major.
@@ -60,12 +62,13 @@ pub enum SkyColour<'a> {
 /// Renders one image: its rays, with the plan of each pixel, and its frame and camera id.
 /// Returns the maps and the sky colour used.
 ///
-/// With [`Renderer::adaptive`], only every second pixel of every second row (and the last row
-/// and column) is rendered first; every other pixel is rendered too unless the four rendered
-/// pixels around it have its panoptic and fixed-field labels and it crosses the same primitives
-/// as they do, in which case it takes their labels and an interpolation of their depth,
-/// confidence and colour. Labels change only inside a cell of four agreeing pixels (a detail of
-/// the learned field finer than two pixels, within one primitive).
+/// With [`Renderer::adaptive`], only the pixels of a grid of spacing
+/// [`Renderer::coarse_stride`] (and the last row and column) are rendered first; then, halving
+/// the spacing until it is 1, each pixel new on the finer grid is rendered too unless the four
+/// pixels of the coarser grid around it have its panoptic and fixed-field labels and it crosses
+/// the same primitives as they do, in which case it takes their labels and an interpolation of
+/// their depth, confidence and colour. Labels change only inside a cell of four agreeing pixels
+/// (a detail of the learned field finer than the cell, within one primitive).
 pub fn render_image(
     r: &Renderer,
     rays: &PlannedImage,
@@ -112,88 +115,83 @@ pub fn render_image(
             *out = (v * 255.0).round() as u8;
         }
     }
-    if !r.adaptive {
-        let all: Vec<u32> = (0..n as u32)
-            .filter(|&p| rays.hits_anything(p as usize))
-            .collect();
-        render_pixels(r, rays, &all, sky_rgb, &mut maps)?;
-        if !r.heads.rgb {
-            maps.rgb = Vec::new();
-        }
-        return Ok((maps, sky_rgb));
-    }
-    let (xs, ys) = (coarse(width), coarse(height));
-    let is_coarse =
-        |x: u32, y: u32| (x % 2 == 0 || x == width - 1) && (y % 2 == 0 || y == height - 1);
-    let first: Vec<u32> = ys
-        .iter()
-        .flat_map(|&y| xs.iter().map(move |&x| y * width + x))
+    let coarse_stride = if r.adaptive {
+        r.coarse_stride.max(1)
+    } else {
+        1
+    };
+    let on_grid = |x: u32, n: u32, s: u32| x % s == 0 || x == n - 1;
+    let first: Vec<u32> = (0..height)
+        .filter(|&y| on_grid(y, height, coarse_stride))
+        .flat_map(|y| {
+            (0..width)
+                .filter(move |&x| on_grid(x, width, coarse_stride))
+                .map(move |x| y * width + x)
+        })
         .filter(|&p| rays.hits_anything(p as usize))
         .collect();
     render_pixels(r, rays, &first, sky_rgb, &mut maps)?;
-    let mut rest = Vec::new();
-    for y in 0..height {
-        let (y0, y1) = cell(y, height);
-        for x in 0..width {
-            if is_coarse(x, y) {
-                continue;
+    // Halve the spacing until every pixel is decided: a pixel new on the finer grid is rendered
+    // unless the four pixels of the coarser grid around it agree.
+    let mut s = coarse_stride;
+    while s > 1 {
+        let h = s / 2;
+        let mut rest = Vec::new();
+        for y in (0..height).filter(|&y| on_grid(y, height, h)) {
+            let (y0, y1) = cell(y, height, s);
+            let row_known = on_grid(y, height, s);
+            for x in (0..width).filter(|&x| on_grid(x, width, h)) {
+                let p = (y * width + x) as usize;
+                if (row_known && on_grid(x, width, s)) || !rays.hits_anything(p) {
+                    continue;
+                }
+                let (x0, x1) = cell(x, width, s);
+                let corners = [
+                    (y0 * width + x0) as usize,
+                    (y0 * width + x1) as usize,
+                    (y1 * width + x0) as usize,
+                    (y1 * width + x1) as usize,
+                ];
+                let same = corners.iter().all(|&c| {
+                    maps.instance[c] == maps.instance[corners[0]]
+                        && maps.fixed[c] == maps.fixed[corners[0]]
+                        && rays.intervals(c as u32).prim == rays.intervals(p as u32).prim
+                });
+                if !same {
+                    rest.push(p as u32);
+                    continue;
+                }
+                let frac = |v: u32, v0: u32, v1: u32| {
+                    if v1 > v0 {
+                        (v - v0) as f32 / (v1 - v0) as f32
+                    } else {
+                        0.0
+                    }
+                };
+                let (fx, fy) = (frac(x, x0, x1), frac(y, y0, y1));
+                let w = [
+                    (1.0 - fx) * (1.0 - fy),
+                    fx * (1.0 - fy),
+                    (1.0 - fx) * fy,
+                    fx * fy,
+                ];
+                interpolate(&mut maps, p, &corners, &w);
             }
-            let (x0, x1) = cell(x, width);
-            let p = (y * width + x) as usize;
-            let corners = [
-                (y0 * width + x0) as usize,
-                (y0 * width + x1) as usize,
-                (y1 * width + x0) as usize,
-                (y1 * width + x1) as usize,
-            ];
-            let same = corners.iter().all(|&c| {
-                maps.instance[c] == maps.instance[corners[0]]
-                    && maps.fixed[c] == maps.fixed[corners[0]]
-                    && rays.intervals(c as u32).prim == rays.intervals(p as u32).prim
-            });
-            if !same {
-                rest.push(p as u32);
-                continue;
-            }
-            let fx = if x1 > x0 {
-                (x - x0) as f32 / (x1 - x0) as f32
-            } else {
-                0.0
-            };
-            let fy = if y1 > y0 {
-                (y - y0) as f32 / (y1 - y0) as f32
-            } else {
-                0.0
-            };
-            let w = [
-                (1.0 - fx) * (1.0 - fy),
-                fx * (1.0 - fy),
-                (1.0 - fx) * fy,
-                fx * fy,
-            ];
-            interpolate(&mut maps, p, &corners, &w);
         }
+        render_pixels(r, rays, &rest, sky_rgb, &mut maps)?;
+        s = h;
     }
-    render_pixels(r, rays, &rest, sky_rgb, &mut maps)?;
     if !r.heads.rgb {
         maps.rgb = Vec::new();
     }
     Ok((maps, sky_rgb))
 }
 
-/// The rendered columns (or rows) of a side of `n` pixels: the even ones and the last.
-fn coarse(n: u32) -> Vec<u32> {
-    let mut v: Vec<u32> = (0..n).step_by(2).collect();
-    if n > 0 && (n - 1) % 2 == 1 {
-        v.push(n - 1);
-    }
-    v
-}
-
-/// The rendered columns (or rows) around `x` on a side of `n` pixels.
-fn cell(x: u32, n: u32) -> (u32, u32) {
-    let x0 = x - x % 2;
-    let x1 = (x0 + 2).min(n - 1);
+/// The pixels of the grid of spacing `s` around `x` on a side of `n` pixels (the last pixel is
+/// on every grid).
+fn cell(x: u32, n: u32, s: u32) -> (u32, u32) {
+    let x0 = x - x % s;
+    let x1 = (x0 + s).min(n - 1);
     (x0, x1)
 }
 
