@@ -323,57 +323,73 @@ mod tests {
     /// backend this build has, past the 65535 reads where burn's wgpu `select` gradient breaks.
     #[test]
     fn grid_gradient_counts_every_corner_read() {
-        let (rows, features, points) = (4096usize, 2usize, 9000usize);
+        let (rows, features, points) = (300_000usize, 2usize, 9000usize);
         let reads = points * 8;
         assert!(reads > 1 << 16);
-        let indices: Vec<i32> = (0..reads)
-            .map(|k| ((k * 7919 + k / 3) % rows) as i32)
-            .collect();
-        let weights: Vec<f32> = (0..reads).map(|k| ((k * 17) % 23) as f32 / 23.0).collect();
-        let c: Vec<f32> = (0..points * features)
-            .map(|i| ((i * 13) % 7) as f32 - 3.0)
-            .collect();
-        let mut want = vec![0f64; rows * features];
-        for k in 0..reads {
-            for f in 0..features {
-                want[indices[k] as usize * features + f] +=
-                    weights[k] as f64 * c[(k / 8) * features + f] as f64;
+        // Spread over the table, and crowded onto a few rows (a coarse dense level, where
+        // thousands of reads of one batch share a vertex).
+        for crowded in [false, true] {
+            let indices: Vec<i32> = (0..reads)
+                .map(|k| {
+                    if crowded {
+                        (k % 5) as i32
+                    } else {
+                        ((k * 7919 + k / 3) % rows) as i32
+                    }
+                })
+                .collect();
+            let weights: Vec<f32> = (0..reads).map(|k| ((k * 17) % 23) as f32 / 23.0).collect();
+            let c: Vec<f32> = (0..points * features)
+                .map(|i| ((i * 13) % 7) as f32 - 3.0)
+                .collect();
+            let mut want = vec![0f64; rows * features];
+            for k in 0..reads {
+                for f in 0..features {
+                    want[indices[k] as usize * features + f] +=
+                        weights[k] as f64 * c[(k / 8) * features + f] as f64;
+                }
             }
-        }
-        let lookup = crate::model::encoding::GridLookup {
-            points,
-            indices,
-            weights,
-        };
-        for b in Backend::available() {
-            if b.check_device().is_err() && !std::env::var("CI").is_ok_and(|v| v == "true") {
-                continue;
-            }
-            let d = b.train_device();
-            let table = Tensor::<2>::from_data(
-                TensorData::new(vec![0.5f32; rows * features], [rows, features]),
-                &d,
-            );
-            let grid = HashGrid {
-                table: Param::from_tensor(table),
-                levels: 1,
-                features,
+            let lookup = crate::model::encoding::GridLookup {
+                points,
+                indices,
+                weights,
             };
-            let ct = Tensor::<2>::from_data(TensorData::new(c.clone(), [points, features]), &d);
-            let grads = (grid.forward(&lookup) * ct).sum().backward();
-            let got = grid
-                .table
-                .grad(&grads)
-                .unwrap()
-                .into_data()
-                .try_to_vec::<f32>()
-                .unwrap();
-            let bad = got
-                .iter()
-                .zip(&want)
-                .filter(|(g, w)| (**g as f64 - **w).abs() > 1e-3 * (1.0 + w.abs()))
-                .count();
-            assert_eq!(bad, 0, "{}: {bad} of {} table entries", b.name(), got.len());
+            for b in Backend::available() {
+                if b.check_device().is_err() && !std::env::var("CI").is_ok_and(|v| v == "true") {
+                    continue;
+                }
+                let d = b.train_device();
+                let table = Tensor::<2>::from_data(
+                    TensorData::new(vec![0.5f32; rows * features], [rows, features]),
+                    &d,
+                );
+                let grid = HashGrid {
+                    table: Param::from_tensor(table),
+                    levels: 1,
+                    features,
+                };
+                let ct = Tensor::<2>::from_data(TensorData::new(c.clone(), [points, features]), &d);
+                let grads = (grid.forward(&lookup) * ct).sum().backward();
+                let got = grid
+                    .table
+                    .grad(&grads)
+                    .unwrap()
+                    .into_data()
+                    .try_to_vec::<f32>()
+                    .unwrap();
+                let bad = got
+                    .iter()
+                    .zip(&want)
+                    .filter(|(g, w)| (**g as f64 - **w).abs() > 1e-3 * (1.0 + w.abs()))
+                    .count();
+                assert_eq!(
+                    bad,
+                    0,
+                    "{} (crowded: {crowded}): {bad} of {} table entries",
+                    b.name(),
+                    got.len()
+                );
+            }
         }
     }
 
