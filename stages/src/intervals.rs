@@ -200,8 +200,11 @@ pub fn plan_image(prims: &[Primitive], bvh: &Bvh, cam: &Camera, p: &IntersectPar
         .map_init(Vec::new, |hits, y| {
             let mut row = ImagePlan::default();
             for x in 0..cam.width {
-                let ray = cam.pixel_ray(x, y);
-                bvh.intersect_all(prims, &ray, 0.0, p.far, hits);
+                // A pixel outside a fisheye's lens crosses nothing.
+                match cam.pixel_ray(x, y) {
+                    Some(ray) => bvh.intersect_all(prims, &ray, 0.0, p.far, hits),
+                    None => hits.clear(),
+                }
                 row.push_pixel(prims, hits, p);
             }
             row

@@ -5,7 +5,7 @@
 
 use glam::{DAffine3, DQuat, DVec3};
 
-use super::{Camera, Primitive, Shape};
+use super::{Camera, Lens, Primitive, Shape};
 use crate::labels;
 use crate::rng::{SplitMix64, GOLDEN_GAMMA};
 
@@ -392,6 +392,7 @@ fn looking_along_x(width: u32, height: u32, centre: DVec3) -> Camera {
         fy: f,
         cx: width as f64 / 2.0,
         cy: height as f64 / 2.0,
+        lens: Lens::Pinhole,
         cam_to_world: DAffine3::from_mat3_translation(r, centre),
     }
 }

@@ -8,7 +8,7 @@ use arrow::{
 };
 use glam::{DAffine3, DMat3, DVec3};
 
-use super::{Camera, Primitive, Shape};
+use super::{Camera, Lens, Mei, Primitive, Shape};
 use crate::{tables, Result, StageError};
 
 /// One row of the cameras table.
@@ -181,6 +181,18 @@ pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
     Ok(out)
 }
 
+/// Values per row of the `lens_params` column.
+const LENS_PARAMS: usize = 6;
+
+/// The `lens_params` of a lens: MEI's xi, k1, k2, p1, p2 and its half angle; zeros for a
+/// pinhole.
+fn lens_params(lens: &Lens) -> [f64; LENS_PARAMS] {
+    match lens {
+        Lens::Pinhole => [0.0; LENS_PARAMS],
+        Lens::Mei(m) => [m.xi, m.k1, m.k2, m.p1, m.p2, m.max_half_angle_deg],
+    }
+}
+
 /// The cameras table.
 pub fn cameras_to_table(rows: &[CameraRow]) -> Result<RecordBatch> {
     let f = |g: fn(&CameraRow) -> f64| tables::prim::<Float64Type>(rows.iter().map(g));
@@ -195,6 +207,11 @@ pub fn cameras_to_table(rows: &[CameraRow]) -> Result<RecordBatch> {
             f(|r| r.cam.fy),
             f(|r| r.cam.cx),
             f(|r| r.cam.cy),
+            tables::strings(rows.iter().map(|r| r.cam.lens.name())),
+            tables::fixed_list::<Float64Type>(
+                LENS_PARAMS,
+                rows.iter().flat_map(|r| lens_params(&r.cam.lens)).collect(),
+            ),
             tables::fixed_list::<Float64Type>(
                 16,
                 rows.iter()
@@ -218,6 +235,16 @@ pub fn cameras_from_table(t: &RecordBatch) -> Result<Vec<CameraRow>> {
     let fy = tables::get_prim::<Float64Type>(t, T, "fy")?;
     let cx = tables::get_prim::<Float64Type>(t, T, "cx")?;
     let cy = tables::get_prim::<Float64Type>(t, T, "cy")?;
+    let lens_name = tables::get_strings(t, T, "lens")?;
+    let (lens_values, k) = tables::get_fixed_list::<Float64Type>(t, T, "lens_params")?;
+    if k != LENS_PARAMS {
+        return Err(row_err(
+            T,
+            0,
+            "lens_params",
+            format!("expected {LENS_PARAMS} values per row, found {k}"),
+        ));
+    }
     let (pose, n) = tables::get_fixed_list::<Float64Type>(t, T, "cam_to_world")?;
     if n != 16 {
         return Err(row_err(
@@ -243,6 +270,31 @@ pub fn cameras_from_table(t: &RecordBatch) -> Result<Vec<CameraRow>> {
                     return Err(row_err(T, row, col, format!("bad value {v}")));
                 }
             }
+            let v = &lens_values[row * LENS_PARAMS..(row + 1) * LENS_PARAMS];
+            let lens = match lens_name.value(row) {
+                "pinhole" => Lens::Pinhole,
+                "MEI" => {
+                    let mei = Mei {
+                        xi: v[0],
+                        k1: v[1],
+                        k2: v[2],
+                        p1: v[3],
+                        p2: v[4],
+                        max_half_angle_deg: v[5],
+                    };
+                    mei.validate()
+                        .map_err(|e| row_err(T, row, "lens_params", e))?;
+                    Lens::Mei(mei)
+                }
+                other => {
+                    return Err(row_err(
+                        T,
+                        row,
+                        "lens",
+                        format!("unknown lens `{other}` (known: pinhole, MEI)"),
+                    ))
+                }
+            };
             let m = affine_from_row_major(&pose[row * 16..row * 16 + 16])
                 .map_err(|e| row_err(T, row, "cam_to_world", e))?;
             if !m.is_finite() {
@@ -259,6 +311,7 @@ pub fn cameras_from_table(t: &RecordBatch) -> Result<Vec<CameraRow>> {
                     fy: fy[row],
                     cx: cx[row],
                     cy: cy[row],
+                    lens,
                     cam_to_world: m,
                 },
             })

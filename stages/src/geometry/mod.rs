@@ -24,6 +24,7 @@ pub mod error;
 pub mod extruded;
 pub mod fields;
 pub mod io;
+pub mod lens;
 pub mod mesh;
 pub mod primitive;
 pub mod ray;
@@ -37,6 +38,7 @@ pub use glam::{DAffine3, DMat3, DVec3};
 pub use io::{
     cameras_from_table, cameras_to_table, primitives_from_table, primitives_to_table, CameraRow,
 };
+pub use lens::{Lens, Mei, FISHEYE_HALF_ANGLE_DEG};
 pub use primitive::{Primitive, Shape};
 pub use ray::{Hit, Interval, Ray};
 

@@ -217,13 +217,13 @@ proptest! {
         u in 0.0..1408.0f64, v in 0.0..376.0f64, t in 0.5..150.0f64,
     ) {
         let cam = Camera { width: 1408, height: 376, fx: 552.5, fy: 552.5, cx: 682.0, cy: 238.8,
-            cam_to_world: DAffine3::from_rotation_translation(DQuat::from_axis_angle(rot, angle), pos) };
-        let r = cam.ray(u, v);
+            lens: crate::geometry::Lens::Pinhole, cam_to_world: DAffine3::from_rotation_translation(DQuat::from_axis_angle(rot, angle), pos) };
+        let r = cam.ray(u, v).expect("a pinhole has a ray through every point");
         prop_assert!((r.dir.length() - 1.0).abs() < 1e-12);
         let (pu, pv, z) = cam.project(r.at(t)).expect("in front");
         prop_assert!((pu - u).abs() < 1e-6 && (pv - v).abs() < 1e-6, "({pu},{pv}) vs ({u},{v})");
         prop_assert!((z - cam.z_depth(&r, t)).abs() < 1e-7);
-        prop_assert!((z - t * cam.dir_cam(u, v).z).abs() < 1e-7);
+        prop_assert!((z - t * cam.dir_cam(u, v).unwrap().z).abs() < 1e-7);
         prop_assert!(cam.project(r.at(-t)).is_none());
     }
 }
@@ -695,11 +695,49 @@ fn primitives_and_cameras_round_trip_through_tables() {
             frame: 252,
             camera: 1,
             eval: false,
-            cam,
+            cam: cam.clone(),
+        },
+        CameraRow {
+            frame: 252,
+            camera: 2,
+            eval: false,
+            cam: Camera {
+                lens: crate::geometry::Lens::Mei(crate::geometry::Mei {
+                    xi: 2.2,
+                    k1: 0.017,
+                    k2: 1.65,
+                    p1: 4e-4,
+                    p2: -3e-4,
+                    max_half_angle_deg: 95.0,
+                }),
+                ..cam
+            },
         },
     ];
     let t = cameras_to_table(&rows).unwrap();
     assert_eq!(cameras_from_table(&t).unwrap(), rows);
+    // A lens the code does not know, and an MEI lens with xi <= 0, name row and column.
+    let mut cols: Vec<arrow::array::ArrayRef> = t.columns().to_vec();
+    let lens_col = t.schema().index_of("lens").unwrap();
+    cols[lens_col] = crate::tables::strings(["pinhole", "kannala_brandt", "MEI"]);
+    let e = cameras_from_table(&crate::tables::build("cameras", cols).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("row 1 column `lens`: unknown lens `kannala_brandt`"),
+        "{e}"
+    );
+    let mut bad = rows.clone();
+    if let crate::geometry::Lens::Mei(m) = &mut bad[2].cam.lens {
+        m.xi = 0.0;
+    }
+    let e = cameras_from_table(&cameras_to_table(&bad).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("row 2 column `lens_params`: mirror parameter xi"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -131,7 +131,12 @@ pub fn first_primitive_maps(
         .enumerate()
         .for_each(|(i, (s, ins))| {
             let (x, y) = ((i as u32) % cam.width, (i as u32) / cam.width);
-            if let Some(hit) = bvh.first_hit(prims, &cam.pixel_ray(x, y), 0.0, f64::INFINITY) {
+            let Some(ray) = cam.pixel_ray(x, y) else {
+                *s = labels::UNLABELED;
+                *ins = 0;
+                return;
+            };
+            if let Some(hit) = bvh.first_hit(prims, &ray, 0.0, f64::INFINITY) {
                 let p = &prims[hit.prim as usize];
                 *s = p.label;
                 *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;

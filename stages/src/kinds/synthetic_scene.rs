@@ -15,7 +15,7 @@ pub struct SyntheticScene;
 impl TypedStage for SyntheticScene {
     type Params = SceneParams;
     const KIND: &'static str = "synthetic_scene";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const DESCRIPTION: &'static str =
         "synthetic urban street: stereo images, GT labels and depth, 3D bounding primitives, \
          noisy pseudo labels, stereo and LiDAR depth";

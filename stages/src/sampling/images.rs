@@ -102,13 +102,11 @@ impl Rays for ImageRays<'_> {
         let (im, p) = self.locate(r);
         let w = im.cam.width;
         let (x, y) = (p as u32 % w, p as u32 / w);
-        let (origin, dir, z_scale) = pixel_ray(&im.cam, x, y);
-        buf.trace(
-            &self.primitives,
-            &self.bvh,
-            &im.cam.pixel_ray(x, y),
-            &self.params,
-        );
+        let (origin, dir, z_scale) = pixel_ray(&im.cam, x, y)?;
+        // The f64 ray the plan was traced with (`pixel_ray` said the pixel has one).
+        if let Some(ray) = im.cam.pixel_ray(x, y) {
+            buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
+        }
         if buf.t_in.len() != im.hits[p] as usize {
             return Err(StageError::Input(format!(
                 "ray_intervals does not match the scene: pixel ({x}, {y}) of frame {} camera {} \

@@ -151,7 +151,8 @@ pub struct SceneRay<'a> {
     pub origin: [f32; 3],
     /// Unit direction.
     pub dir: [f32; 3],
-    /// Camera-frame z of the unit direction: z-depth = t * z_scale.
+    /// Depth per metre along the ray (see [`geometry::Camera::depth`]): the camera-frame z of
+    /// the unit direction for a pinhole, 1 for a fisheye.
     pub z_scale: f32,
     pub intervals: Intervals<'a>,
     pub targets: RayTargets,
@@ -186,15 +187,24 @@ impl StoredRays for PlannedImage<'_> {
     }
 }
 
-/// The origin, unit direction and z scale of pixel `(x, y)` of `cam` as f32 (computed in f64).
-pub fn pixel_ray(cam: &geometry::Camera, x: u32, y: u32) -> ([f32; 3], [f32; 3], f32) {
+/// The origin, unit direction and z scale of pixel `(x, y)` of `cam` as f32 (computed in f64);
+/// an error for a pixel outside the lens (no ray: the plan gives it no samples).
+pub fn pixel_ray(cam: &geometry::Camera, x: u32, y: u32) -> Result<([f32; 3], [f32; 3], f32)> {
     let o = cam.centre();
-    let d = cam.pixel_ray(x, y).dir;
-    (
+    let (Some(ray), Some(d_cam)) = (
+        cam.pixel_ray(x, y),
+        cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5),
+    ) else {
+        return Err(StageError::Input(format!(
+            "pixel ({x}, {y}) is outside the camera's lens and has no ray"
+        )));
+    };
+    let d = ray.dir;
+    Ok((
         [o.x as f32, o.y as f32, o.z as f32],
         [d.x as f32, d.y as f32, d.z as f32],
-        cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5).z as f32,
-    )
+        cam.depth_scale(d_cam) as f32,
+    ))
 }
 
 /// Rays given one by one (tests and toy scenes): per-ray origin, direction, ragged intervals and
@@ -343,7 +353,7 @@ impl Rays for PlannedImage<'_> {
     }
     fn ray<'s>(&'s self, r: u32, _: &'s mut RayPlan) -> Result<SceneRay<'s>> {
         let w = self.cam.width;
-        let (origin, dir, z_scale) = pixel_ray(self.cam, r % w, r / w);
+        let (origin, dir, z_scale) = pixel_ray(self.cam, r % w, r / w)?;
         Ok(SceneRay {
             origin,
             dir,

@@ -10,7 +10,7 @@ use arrow::datatypes::UInt8Type;
 
 use super::io::{image_keys, table, write_png};
 use crate::geometry::{cameras_from_table, primitives_from_table, Bvh};
-use crate::labels::{self, SKY};
+use crate::labels::{self, SKY, UNLABELED};
 use crate::{tables, Result, Tables};
 
 /// The label map of the first primitive hit per pixel (sky where no primitive is hit).
@@ -22,11 +22,10 @@ pub fn first_primitive_labels(
     let mut out = Vec::with_capacity((cam.width * cam.height) as usize);
     for y in 0..cam.height {
         for x in 0..cam.width {
-            let ray = cam.pixel_ray(x, y);
-            out.push(
+            out.push(cam.pixel_ray(x, y).map_or(UNLABELED, |ray| {
                 bvh.first_hit(prims, &ray, 0.0, 1.0e4)
-                    .map_or(SKY, |h| prims[h.prim as usize].label),
-            );
+                    .map_or(SKY, |h| prims[h.prim as usize].label)
+            }));
         }
     }
     out

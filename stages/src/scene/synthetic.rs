@@ -22,7 +22,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::{
-    cameras_to_table, primitives_to_table, Bvh, Camera, CameraRow, DAffine3, DMat3, DVec3,
+    cameras_to_table, primitives_to_table, Bvh, Camera, CameraRow, DAffine3, DMat3, DVec3, Lens,
+    Mei,
 };
 use crate::labels::{self, PAPER_CLASSES, ROAD, SKY, TERRAIN};
 use crate::{tables, Progress, Result, StageError, Tables};
@@ -65,6 +66,13 @@ pub struct SceneParams {
     pub stereo_max_depth_m: f64,
     /// Classes that appear (paper class names); road, terrain and sky are required.
     pub classes: Vec<String>,
+    /// Also render the two side fisheye cameras of KITTI-360 (camera 2, image_02, looking left;
+    /// camera 3, image_03, looking right): its MEI calibration's shape, 1400x1400 at `scale` 1,
+    /// about 190 degrees across the lens circle.
+    pub fisheye: bool,
+    /// Pseudo labels for the fisheye images too (a 2D network for fisheye images may not
+    /// exist; without them those images train colour only).
+    pub fisheye_pseudo_labels: bool,
 }
 
 impl Default for SceneParams {
@@ -88,6 +96,8 @@ impl Default for SceneParams {
                 .iter()
                 .map(|&c| labels::by_id(c).expect("paper class").name.to_string())
                 .collect(),
+            fisheye: false,
+            fisheye_pseudo_labels: false,
         }
     }
 }
@@ -98,6 +108,22 @@ const KITTI_HEIGHT: f64 = 376.0;
 const KITTI_F: f64 = 552.554261;
 const KITTI_CX: f64 = 682.049453;
 const KITTI_CY: f64 = 238.769549;
+
+/// KITTI-360's fisheye cameras (image_02, image_03) at full size: the shape of their MEI
+/// calibration (rounded), and where they sit in the left camera's frame (x right, y down, z
+/// forward), metres.
+const FISHEYE_SIDE: f64 = 1400.0;
+const FISHEYE_GAMMA: [f64; 2] = [1336.3, 1335.8];
+const FISHEYE_CENTRE: [f64; 2] = [716.9, 705.8];
+const FISHEYE_MEI: Mei = Mei {
+    xi: 2.2134,
+    k1: 0.01693,
+    k2: 1.6798,
+    p1: 4.2e-4,
+    p2: 4.2e-4,
+    max_half_angle_deg: crate::geometry::FISHEYE_HALF_ANGLE_DEG,
+};
+const FISHEYE_POSITION: [[f64; 3]; 2] = [[-0.7, -0.1, -0.8], [1.3, -0.1, -0.8]];
 
 impl SceneParams {
     /// Label ids of the `classes` param (validated).
@@ -253,6 +279,50 @@ impl SceneParams {
 pub fn rig(p: &SceneParams, frame: u32) -> [Camera; 2] {
     let (width, height) = p.image_size();
     let s = width as f64 / KITTI_WIDTH;
+    let (rot, pos) = rig_pose(p, frame);
+    let cam = |centre: DVec3| Camera {
+        width,
+        height,
+        fx: KITTI_F * s,
+        fy: KITTI_F * s,
+        // KITTI's principal point is in OpenCV pixel coordinates (centres at integers); ours
+        // has pixel (0, 0) spanning [0, 1), hence the half-pixel shift before scaling.
+        cx: (KITTI_CX + 0.5) * s,
+        cy: (KITTI_CY + 0.5) * (height as f64 / KITTI_HEIGHT),
+        lens: Lens::Pinhole,
+        cam_to_world: DAffine3::from_mat3_translation(rot, centre),
+    };
+    let right = pos + rot * DVec3::new(p.baseline_m, 0.0, 0.0);
+    [cam(pos), cam(right)]
+}
+
+/// The side fisheye cameras of `frame` (cameras 2 and 3): left-looking, with its x axis
+/// forward, and right-looking, with its x axis backward, both with the left camera's y (down).
+pub fn fisheye_rig(p: &SceneParams, frame: u32) -> [Camera; 2] {
+    let side = (FISHEYE_SIDE * p.scale).round().max(8.0) as u32;
+    let s = side as f64 / FISHEYE_SIDE;
+    let (rot, pos) = rig_pose(p, frame);
+    let looking = [
+        DMat3::from_cols(DVec3::Z, DVec3::Y, -DVec3::X),
+        DMat3::from_cols(-DVec3::Z, DVec3::Y, DVec3::X),
+    ];
+    std::array::from_fn(|k| Camera {
+        width: side,
+        height: side,
+        fx: FISHEYE_GAMMA[0] * s,
+        fy: FISHEYE_GAMMA[1] * s,
+        cx: (FISHEYE_CENTRE[0] + 0.5) * s,
+        cy: (FISHEYE_CENTRE[1] + 0.5) * s,
+        lens: Lens::Mei(FISHEYE_MEI),
+        cam_to_world: DAffine3::from_mat3_translation(
+            rot * looking[k],
+            pos + rot * DVec3::from_array(FISHEYE_POSITION[k]),
+        ),
+    })
+}
+
+/// The left camera's axes and centre in the scene frame at `frame`.
+fn rig_pose(p: &SceneParams, frame: u32) -> (DMat3, DVec3) {
     // A little deterministic wobble of heading and pitch, like a real drive.
     let mut r = rng::Rng::new(p.seed, rng::Purpose::Layout, &[0xCA, frame as u64]);
     let (yaw, pitch) = (r.normal() * 0.006, r.normal() * 0.004);
@@ -264,19 +334,7 @@ pub fn rig(p: &SceneParams, frame: u32) -> [Camera; 2] {
         RIG_Y + r.normal() * 0.05,
         p.camera_height_m,
     );
-    let cam = |centre: DVec3| Camera {
-        width,
-        height,
-        fx: KITTI_F * s,
-        fy: KITTI_F * s,
-        // KITTI's principal point is in OpenCV pixel coordinates (centres at integers); ours
-        // has pixel (0, 0) spanning [0, 1), hence the half-pixel shift before scaling.
-        cx: (KITTI_CX + 0.5) * s,
-        cy: (KITTI_CY + 0.5) * (height as f64 / KITTI_HEIGHT),
-        cam_to_world: DAffine3::from_mat3_translation(rot, centre),
-    };
-    let right = pos + rot * DVec3::new(p.baseline_m, 0.0, 0.0);
-    [cam(pos), cam(right)]
+    (rot, pos)
 }
 
 /// Everything generated for one scene, before it becomes tables.
@@ -285,8 +343,11 @@ pub struct Generated {
     pub cameras: Vec<CameraRow>,
     /// Per camera row: the rendering.
     pub images: Vec<tracer::Rendered>,
-    /// Per left camera row (frame order): pseudo labels and stereo depth.
+    /// The camera rows with pseudo labels (the left ones, and the fisheye ones when asked),
+    /// and their pseudo labels.
+    pub labelled: Vec<usize>,
     pub pseudo: Vec<Vec<u8>>,
+    /// Per left camera row (frame order): stereo depth.
     pub stereo: Vec<Vec<f32>>,
     /// Per eval frame: LiDAR depth (left camera).
     pub lidar: Vec<(u32, Vec<f32>)>,
@@ -300,8 +361,10 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
         .frame_numbers()
         .flat_map(|f| {
             let eval = p.is_eval(f);
+            let fisheye = p.fisheye.then(|| fisheye_rig(p, f));
             rig(p, f)
                 .into_iter()
+                .chain(fisheye.into_iter().flatten())
                 .enumerate()
                 .map(move |(c, cam)| CameraRow {
                     frame: f,
@@ -327,29 +390,45 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
     let left: Vec<usize> = (0..cameras.len())
         .filter(|&i| cameras[i].camera == 0)
         .collect();
-    let (pseudo, stereo): (Vec<Vec<u8>>, Vec<Vec<f32>>) = left
+    let labelled: Vec<usize> = (0..cameras.len())
+        .filter(|&i| cameras[i].camera == 0 || (cameras[i].camera >= 2 && p.fisheye_pseudo_labels))
+        .collect();
+    let pseudo: Vec<Vec<u8>> = labelled
         .par_iter()
         .map(|&i| {
             let (row, img) = (&cameras[i], &images[i]);
-            let (w, h) = (row.cam.width as usize, row.cam.height as usize);
             let inp = noise::NoiseInput {
-                width: w,
-                height: h,
+                width: row.cam.width as usize,
+                height: row.cam.height as usize,
                 labels: &img.labels,
                 instances: &img.instances,
                 overexposed: &img.overexposed,
             };
-            let pl = noise::pseudo_labels(&inp, p.noise, p.seed, row.frame);
+            // The left camera's noise as before; each fisheye camera its own.
+            let seed = p.seed ^ ((row.camera as u64) << 40);
+            let mut pl = noise::pseudo_labels(&inp, p.noise, seed, row.frame);
+            for (l, &gt) in pl.iter_mut().zip(&img.labels) {
+                if gt == labels::UNLABELED {
+                    *l = labels::UNLABELED; // outside a fisheye's lens
+                }
+            }
+            pl
+        })
+        .collect();
+    let stereo: Vec<Vec<f32>> = left
+        .par_iter()
+        .map(|&i| {
+            let (row, img) = (&cameras[i], &images[i]);
+            let (w, h) = (row.cam.width as usize, row.cam.height as usize);
             let model = depth::StereoModel {
                 max_depth: p.stereo_max_depth_m,
                 fb: row.cam.fx * p.baseline_m,
                 width: w,
                 height: h,
             };
-            let sd = depth::stereo_depth(&model, &img.depth, &img.overexposed, p.seed, row.frame);
-            (pl, sd)
+            depth::stereo_depth(&model, &img.depth, &img.overexposed, p.seed, row.frame)
         })
-        .unzip();
+        .collect();
     let lidar: Vec<(u32, Vec<f32>)> = left
         .par_iter()
         .filter(|&&i| cameras[i].eval)
@@ -383,6 +462,7 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
         layout,
         cameras,
         images,
+        labelled,
         pseudo,
         stereo,
         lidar,
@@ -490,7 +570,10 @@ pub fn to_tables(p: &SceneParams, g: &Generated) -> Result<Tables> {
         "pseudo_labels".into(),
         image_table(
             "pseudo_labels",
-            &left,
+            &g.labelled
+                .iter()
+                .map(|&i| key(&g.cameras[i]))
+                .collect::<Vec<_>>(),
             tables::list::<UInt8Type>(g.pseudo.clone()),
         )?,
     );

@@ -265,12 +265,15 @@ pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look) -> Rendered
     for y in 0..h {
         for x in 0..w {
             let i = y * w + x;
-            let ray = cam.pixel_ray(x as u32, y as u32);
+            // Outside a fisheye's lens: black and unlabelled, as the real images are.
+            let Some(ray) = cam.pixel_ray(x as u32, y as u32) else {
+                continue;
+            };
             let s = trace(layout, bvh, &ray);
             out.labels[i] = s.label;
             out.instances[i] = s.instance;
             if let Some(t) = s.t {
-                out.depth[i] = cam.z_depth(&ray, t) as f32;
+                out.depth[i] = cam.depth(&ray, t) as f32;
             }
             let glare = look.glare.map_or(0.0, |(gu, gv, r, k)| {
                 let d2 = (x as f64 + 0.5 - gu).powi(2) + (y as f64 + 0.5 - gv).powi(2);

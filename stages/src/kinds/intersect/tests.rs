@@ -49,6 +49,7 @@ fn scene(camera: u8) -> Tables {
         fy: 5.0,
         cx: 1.5,
         cy: 1.5,
+        lens: crate::geometry::Lens::Pinhole,
         cam_to_world: DAffine3::from_mat3(DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X)),
     };
     let rows = vec![CameraRow {
@@ -189,7 +190,7 @@ fn ragged_intervals_agree_with_the_bvh_on_the_street_scene() {
     for y in 0..16 {
         for x in 0..48 {
             let i = (y * 48 + x) as usize;
-            bvh.intersect_all(&prims, &cam.pixel_ray(x, y), 0.0, p.far, &mut hits);
+            bvh.intersect_all(&prims, &cam.pixel_ray(x, y).unwrap(), 0.0, p.far, &mut hits);
             let n = hits.len().min(10);
             assert_eq!(plan.hits[i] as usize, n);
             for (j, h) in hits[..n].iter().enumerate() {

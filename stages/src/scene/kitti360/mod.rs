@@ -15,7 +15,18 @@
 //! param `stereo_depth` (optional)                     16-bit metres*256 PNGs, left camera
 //! params `gt_semantic`, `gt_instance` (optional)      KITTI-360 semantic/instance PNGs
 //! param `lidar` + `lidar_calib` (optional)            velodyne .bin for evaluation frames
+//! with cameras image_02 / image_03 (the side fisheye cameras):
+//! calibration/image_{cam}.yaml                        MEI intrinsics (OpenCV YAML)
+//! calibration/calib_cam_to_pose.txt                   camera -> pose frame, image_00..03
+//! data_poses/{seq}/poses.txt                          pose frame -> world per frame
+//! data_2d_raw/{seq}/image_{cam}/data_rgb/{frame}.png  fisheye images
+//! param `fisheye_pseudo_labels` (optional)            their noisy labels
 //! ```
+//!
+//! A fisheye camera -> world is `poses.txt[frame] * calib_cam_to_pose[cam]`; the perspective
+//! cameras stay on `cam0_to_world.txt`, which must agree with
+//! `poses.txt * calib_cam_to_pose[image_00] * R_rect_00^T` (to 1 cm and 1 mrad) in every selected
+//! frame, or the fisheye cameras would not line up with them.
 //!
 //! Frames: `frames` if given (each must have a pose), else every frame in
 //! `[first_frame, last_frame]` that has a pose (KITTI-360 poses are not contiguous; frames
@@ -27,11 +38,12 @@
 //! Cache keying: [`input_files`] lists every file a run with given params reads, so the runner
 //! can hash them into the stage key (see the module's report for the hook it needs).
 
+mod fisheye;
 mod params;
 pub mod parse;
 mod read;
 
-pub use params::{EvalGt, Kitti360Params};
+pub use params::{is_fisheye, EvalGt, Kitti360Params};
 
 use std::path::PathBuf;
 
@@ -44,6 +56,7 @@ use crate::geometry::{cameras_to_table, primitives_to_table, CameraRow, Primitiv
 use crate::labels::SKY;
 use crate::{tables, Progress, Result, Tables};
 
+use fisheye::Fisheye;
 use read::{
     camera_rows, check_eval_gt, load_each, load_gt_instance, load_gt_semantic, load_lidar,
     load_primitives, load_stereo_depth, Key,
@@ -62,12 +75,24 @@ pub fn input_files(p: &Kitti360Params) -> Result<Vec<PathBuf>> {
     let posed = parse::poses(&pose_path, &parse::read_text(&pose_path)?)?;
     let frames = p.select_frames(&posed)?;
     let mut out = vec![pose_path, p.file(&p.calibration), p.file(&p.bboxes)];
+    let fisheyes = p.fisheye_cameras();
+    if !fisheyes.is_empty() {
+        out.extend([p.file(&p.cam_to_pose), p.file(&p.imu_poses)]);
+        out.extend(
+            fisheyes
+                .iter()
+                .map(|&c| p.path(&p.fisheye_calibration, 0, c)),
+        );
+    }
     if p.lidar.is_some() {
         out.push(p.file(&p.lidar_calib));
     }
     for (k, &f) in frames.iter().enumerate() {
         for &c in &p.cameras {
-            out.push(p.path(&p.images, f, c));
+            out.push(image_path(p, &(f, c, 0, 0)));
+            if let Some(pat) = p.fisheye_pseudo_labels.as_ref().filter(|_| is_fisheye(c)) {
+                out.push(p.path(pat, f, c));
+            }
             for pat in [&p.gt_semantic, &p.gt_instance].into_iter().flatten() {
                 out.push(p.path(pat, f, c));
             }
@@ -83,6 +108,16 @@ pub fn input_files(p: &Kitti360Params) -> Result<Vec<PathBuf>> {
         }
     }
     Ok(out)
+}
+
+/// The image file of `k`: rectified perspective, or fisheye.
+fn image_path(p: &Kitti360Params, k: &Key) -> PathBuf {
+    let pattern = if is_fisheye(k.1) {
+        &p.fisheye_images
+    } else {
+        &p.images
+    };
+    p.path(pattern, k.0, k.1)
 }
 
 /// A per-image table from (frame, camera, width, height) keys and a value column.
@@ -114,7 +149,8 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     };
     progress.update(0, 4, "poses and calibration");
 
-    let mut cameras = camera_rows(p, &frames, &posed, &calib, origin);
+    let fisheye = Fisheye::load(p, &frames, &posed, calib.r_rect)?;
+    let mut cameras = camera_rows(p, &frames, &posed, &calib, fisheye.as_ref(), origin)?;
     let centres: Vec<DVec3> = cameras.iter().map(|r| r.cam.centre()).collect();
 
     // Primitives.
@@ -125,23 +161,35 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
 
     // Images and labels.
     let (w, h) = (calib.width, calib.height);
-    let all: Vec<Key> = cameras.iter().map(|r| (r.frame, r.camera, w, h)).collect();
+    let all: Vec<Key> = cameras
+        .iter()
+        .map(|r| (r.frame, r.camera, r.cam.width, r.cam.height))
+        .collect();
     let left: Vec<Key> = all.iter().copied().filter(|k| k.1 == 0).collect();
     let rgb = load_each(
         &all,
-        |k| p.path(&p.images, k.0, k.1),
-        |path, _| parse::rgb(path, w, h),
+        |k| image_path(p, k),
+        |path, k| parse::rgb(path, k.2, k.3),
         true,
     )?;
+    // Pseudo labels: every left image, and every fisheye image when the params name them.
+    let labelled: Vec<Key> = all
+        .iter()
+        .copied()
+        .filter(|k| k.1 == 0 || (is_fisheye(k.1) && p.fisheye_pseudo_labels.is_some()))
+        .collect();
     let pseudo = load_each(
-        &left,
-        |k| p.path(&p.pseudo_labels, k.0, 0),
-        |path, _| parse::labels(path, w, h),
+        &labelled,
+        |k| match (&p.fisheye_pseudo_labels, is_fisheye(k.1)) {
+            (Some(pat), true) => p.path(pat, k.0, k.1),
+            _ => p.path(&p.pseudo_labels, k.0, 0),
+        },
+        |path, k| parse::labels(path, k.2, k.3),
         true,
     )?;
     progress.update(2, 4, "images");
-    let gt_sem = load_gt_semantic(p, &all, w, h)?;
-    let gt_inst = load_gt_instance(p, &all, w, h)?;
+    let gt_sem = load_gt_semantic(p, &all)?;
+    let gt_inst = load_gt_instance(p, &all)?;
     check_eval_gt(p, &mut cameras, &gt_sem, &gt_inst)?;
     let stereo = load_stereo_depth(p, &left, w, h)?;
     progress.update(3, 4, "labels");
@@ -153,6 +201,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
         prims,
         all,
         left,
+        labelled,
         rgb,
         pseudo,
         gt_sem,
@@ -173,6 +222,8 @@ struct Read {
     prims: Vec<Primitive>,
     all: Vec<Key>,
     left: Vec<Key>,
+    /// The images with pseudo labels.
+    labelled: Vec<Key>,
     rgb: Vec<Option<Vec<u8>>>,
     pseudo: Vec<Option<Vec<u8>>>,
     gt_sem: Vec<Option<Vec<u8>>>,
@@ -208,6 +259,7 @@ fn scene_tables(
         prims,
         all,
         left,
+        labelled,
         rgb,
         pseudo,
         gt_sem,
@@ -276,7 +328,7 @@ fn scene_tables(
         "pseudo_labels".into(),
         image_table(
             "pseudo_labels",
-            &left,
+            &labelled,
             tables::list::<UInt8Type>(pseudo.into_iter().flatten()),
         )?,
     );

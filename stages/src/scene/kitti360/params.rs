@@ -25,7 +25,9 @@ pub struct Kitti360Params {
     pub last_frame: u32,
     /// Explicit frame list; overrides the range when non-empty. Each must have a pose.
     pub frames: Vec<u32>,
-    /// Cameras to load: 0 = left (image_00), 1 = right (image_01).
+    /// Cameras to load, by name or number: `image_00` (0, left), `image_01` (1, right),
+    /// `image_02` (2) and `image_03` (3), the left and right side fisheye cameras.
+    #[serde(deserialize_with = "camera_names")]
     pub cameras: Vec<u8>,
     /// Evaluation frames; when empty, every `eval_every`-th selected frame from the first.
     pub eval_frames: Vec<u32>,
@@ -45,6 +47,18 @@ pub struct Kitti360Params {
     pub images: String,
     /// Noisy 2D semantic labels of the left camera (8-bit label ids).
     pub pseudo_labels: String,
+    /// Fisheye images (`{cam}` = 02, 03).
+    pub fisheye_images: String,
+    /// Fisheye intrinsics: MEI model, OpenCV YAML.
+    pub fisheye_calibration: String,
+    /// Camera -> pose-frame extrinsics of every camera (`image_0K:` lines, 3x4).
+    pub cam_to_pose: String,
+    /// Pose frame -> world per frame (3x4): with `cam_to_pose`, places the fisheye cameras
+    /// (the perspective ones stay on `poses`, checked to agree).
+    pub imu_poses: String,
+    /// Optional noisy 2D labels of the fisheye cameras; without them the fisheye images train
+    /// colour only (and still get labels rendered).
+    pub fisheye_pseudo_labels: Option<String>,
     /// Optional weak depth of the left camera (16-bit PNG, metres * 256, 0 = none); null when the
     /// pipeline computes it with the `stereo_depth` stage.
     pub stereo_depth: Option<String>,
@@ -91,6 +105,11 @@ impl Default for Kitti360Params {
             bboxes: "data_3d_bboxes/train/{seq}.xml".into(),
             images: "data_2d_raw/{seq}/image_{cam}/data_rect/{frame}.png".into(),
             pseudo_labels: "pseudo_labels/{seq}/image_00/%010d.png".into(),
+            fisheye_images: "data_2d_raw/{seq}/image_{cam}/data_rgb/{frame}.png".into(),
+            fisheye_calibration: "calibration/image_{cam}.yaml".into(),
+            cam_to_pose: "calibration/calib_cam_to_pose.txt".into(),
+            imu_poses: "data_poses/{seq}/poses.txt".into(),
+            fisheye_pseudo_labels: None,
             stereo_depth: None,
             gt_semantic: Some(
                 "data_2d_semantics/train/{seq}/image_{cam}/semantic/{frame}.png".into(),
@@ -195,8 +214,10 @@ impl Kitti360Params {
                 p.first_frame, p.last_frame
             ));
         }
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
-            return bad("`cameras` must list 0 and/or 1".into());
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+            return bad(
+                "`cameras` must list KITTI-360 cameras: image_00 .. image_03 (or 0 .. 3)".into(),
+            );
         }
         if !p.cameras.contains(&0) {
             return bad(format!(
@@ -216,7 +237,9 @@ impl Kitti360Params {
         c.sort_unstable();
         c.dedup();
         if c != p.cameras {
-            return bad("`cameras` must be ascending without repeats, e.g. [0, 1]".into());
+            return bad(
+                "`cameras` must be ascending without repeats, e.g. [image_00, image_01]".into(),
+            );
         }
         if !(p.max_distance_m.is_finite() && p.max_distance_m > 0.0) {
             return bad(format!(
@@ -229,6 +252,48 @@ impl Kitti360Params {
         }
         Ok(())
     }
+}
+
+impl Kitti360Params {
+    /// The selected fisheye cameras.
+    pub fn fisheye_cameras(&self) -> Vec<u8> {
+        self.cameras
+            .iter()
+            .copied()
+            .filter(|&c| is_fisheye(c))
+            .collect()
+    }
+}
+
+/// Whether camera `c` is one of KITTI-360's fisheye cameras.
+pub fn is_fisheye(c: u8) -> bool {
+    c >= 2
+}
+
+/// `cameras` as numbers, from numbers (`0`) or names (`image_00`).
+fn camera_names<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Vec<u8>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Name {
+        Number(u8),
+        Text(String),
+    }
+    let names = Vec::<Name>::deserialize(d)?;
+    names
+        .into_iter()
+        .map(|n| match n {
+            Name::Number(c) => Ok(c),
+            Name::Text(t) => t
+                .strip_prefix("image_")
+                .filter(|k| k.len() == 2)
+                .and_then(|k| k.parse::<u8>().ok())
+                .ok_or_else(|| {
+                    serde::de::Error::custom(format!(
+                        "camera `{t}`: name KITTI-360 cameras image_00 .. image_03 (or 0 .. 3)"
+                    ))
+                }),
+        })
+        .collect()
 }
 
 /// `a..=b (n frames)`, or the list when short, for messages.

@@ -50,7 +50,7 @@ fn parse_f64(path: &Path, at: &str, tok: &str) -> Result<f64> {
 }
 
 /// Checks the upper 3x3 of a pose is a rotation (orthonormal, determinant +1).
-fn check_rotation(path: &Path, at: &str, m: &DMat3) -> Result<()> {
+pub(super) fn check_rotation(path: &Path, at: &str, m: &DMat3) -> Result<()> {
     let d = m.transpose() * *m - DMat3::IDENTITY;
     let off = d.x_axis.abs().max_element() + d.y_axis.abs().max_element();
     let off = off + d.z_axis.abs().max_element();
@@ -163,7 +163,7 @@ fn check_trajectory(
 pub const MAX_IMAGE_SIDE: u32 = 100_000;
 
 /// `KEY: numbers` lines (perspective.txt, calib_cam_to_velo.txt without key).
-fn keyed(path: &Path, text: &str) -> Result<BTreeMap<String, (usize, Vec<f64>)>> {
+pub(super) fn keyed(path: &Path, text: &str) -> Result<BTreeMap<String, (usize, Vec<f64>)>> {
     let mut out = BTreeMap::new();
     for (i, line) in text.lines().enumerate() {
         let Some((key, rest)) = line.split_once(':') else {

@@ -8,10 +8,12 @@ use std::path::{Path, PathBuf};
 use glam::{DAffine3, DVec3};
 use rayon::prelude::*;
 
-use crate::geometry::{Camera, CameraRow, Primitive, Shape};
+use crate::geometry::{Camera, CameraRow, Lens, Primitive, Shape};
 use crate::labels;
 use crate::{Result, StageError};
 
+use super::fisheye::Fisheye;
+use super::params::is_fisheye;
 use super::parse::{self, err};
 use super::{EvalGt, Kitti360Params};
 
@@ -165,55 +167,69 @@ pub(super) fn lidar_depth(points: &[DVec3], velo_to_rect: &DAffine3, cam: &Camer
 }
 
 /// The camera rows of the selected frames (each camera of `p.cameras` per frame, the right
-/// one offset by the baseline along the left camera's x), recentred on `origin` in f64.
+/// one offset by the baseline along the left camera's x, the fisheye ones placed by
+/// `fisheye`), recentred on `origin` in f64.
 pub(super) fn camera_rows(
     p: &Kitti360Params,
     frames: &[u32],
     posed: &BTreeMap<u32, DAffine3>,
     calib: &parse::Perspective,
+    fisheye: Option<&Fisheye>,
     origin: DVec3,
-) -> Vec<CameraRow> {
+) -> Result<Vec<CameraRow>> {
     let mut cameras = Vec::new();
     for (k, &f) in frames.iter().enumerate() {
         let mut pose = posed[&f];
         pose.translation -= origin;
         for &c in &p.cameras {
-            let mut cam_to_world = pose;
-            if c == 1 {
-                cam_to_world.translation += pose.matrix3 * DVec3::new(calib.baseline, 0.0, 0.0);
-            }
+            // Intrinsics (width, height, fx, fy, OpenCV cx, cy), lens and pose.
+            let (size, lens, cam_to_world) = match fisheye.filter(|_| is_fisheye(c)) {
+                Some(fe) => {
+                    let m = &fe.intrinsics[&c];
+                    let mut to_world = fe.cam_to_world(f, c)?;
+                    to_world.translation -= origin;
+                    let size = (m.width, m.height, m.fx, m.fy, m.cx_file, m.cy_file);
+                    (size, Lens::Mei(m.mei), to_world)
+                }
+                None => {
+                    let mut to_world = pose;
+                    if c == 1 {
+                        to_world.translation += pose.matrix3 * DVec3::new(calib.baseline, 0.0, 0.0);
+                    }
+                    let k = calib;
+                    let size = (k.width, k.height, k.fx, k.fy, k.cx_file, k.cy_file);
+                    (size, Lens::Pinhole, to_world)
+                }
+            };
+            let (width, height, fx, fy, cx_file, cy_file) = size;
             cameras.push(CameraRow {
                 frame: f,
                 camera: c,
                 eval: p.is_eval(k, f),
                 cam: Camera {
-                    width: calib.width,
-                    height: calib.height,
-                    fx: calib.fx,
-                    fy: calib.fy,
-                    cx: calib.cx_file + 0.5,
-                    cy: calib.cy_file + 0.5,
+                    width,
+                    height,
+                    fx,
+                    fy,
+                    cx: cx_file + 0.5,
+                    cy: cy_file + 0.5,
+                    lens,
                     cam_to_world,
                 },
             });
         }
     }
-    cameras
+    Ok(cameras)
 }
 
 /// The optional GT semantic PNGs of every image (`None` where the file is absent, or for
 /// every image when `gt_semantic` is null).
-pub(super) fn load_gt_semantic(
-    p: &Kitti360Params,
-    all: &[Key],
-    w: u32,
-    h: u32,
-) -> Result<Vec<Option<Vec<u8>>>> {
+pub(super) fn load_gt_semantic(p: &Kitti360Params, all: &[Key]) -> Result<Vec<Option<Vec<u8>>>> {
     Ok(match p.gt_semantic.clone() {
         Some(pat) => load_each(
             all,
             |k| p.path(&pat, k.0, k.1),
-            |path, _| parse::labels(path, w, h),
+            |path, k| parse::labels(path, k.2, k.3),
             false,
         )?,
         None => vec![None; all.len()],
@@ -222,17 +238,12 @@ pub(super) fn load_gt_semantic(
 
 /// The optional GT instance PNGs of every image, checked to hold `id * 1000 + instance` of
 /// KITTI-360 labels (`None` as for [`load_gt_semantic`]).
-pub(super) fn load_gt_instance(
-    p: &Kitti360Params,
-    all: &[Key],
-    w: u32,
-    h: u32,
-) -> Result<Vec<Option<Vec<u16>>>> {
+pub(super) fn load_gt_instance(p: &Kitti360Params, all: &[Key]) -> Result<Vec<Option<Vec<u16>>>> {
     Ok(match p.gt_instance.clone() {
         Some(pat) => load_each(
             all,
             |k| p.path(&pat, k.0, k.1),
-            |path, _| {
+            |path, &(_, _, w, h)| {
                 let v = parse::gray16(path, w, h, "instance")?;
                 if let Some(i) = v.iter().position(|&x| {
                     labels::by_id((x as u32 / labels::INSTANCE_FACTOR) as u8).is_none()
@@ -336,6 +347,7 @@ pub(super) fn load_lidar(
             let pts = parse::velodyne(&p.path(pat, r.frame, 0))?;
             // The rectified camera frame is the scene pose's camera frame: depth is its z.
             let cam = Camera {
+                lens: crate::geometry::Lens::Pinhole,
                 cam_to_world: DAffine3::IDENTITY,
                 ..r.cam.clone()
             };

@@ -17,6 +17,8 @@ use crate::scene::synthetic::SceneParams;
 use crate::Inputs;
 use crate::{NoProgress, Stage};
 
+mod fisheye;
+
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }

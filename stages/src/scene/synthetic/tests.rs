@@ -106,7 +106,7 @@ fn pseudo_labels_score_about_67_miou_and_follow_the_noise_level() {
 
 /// Scene-frame point seen at pixel (x, y) with z-depth `z`.
 fn unproject(cam: &crate::geometry::Camera, x: u32, y: u32, z: f64) -> DVec3 {
-    let d = cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5);
+    let d = cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5).unwrap();
     cam.cam_to_world.transform_point3(d * (z / d.z))
 }
 
@@ -586,4 +586,101 @@ fn the_intersect_stage_accepts_the_scene() {
         .run(&kind.default_params(), &mem.inputs(), &NoProgress)
         .unwrap();
     assert!(!out.is_empty());
+}
+
+/// The side fisheye cameras: rendered exactly through MEI's model (a GT depth pixel lifted to
+/// 3D projects back onto itself and lies on the first surface its ray meets), black and
+/// unlabelled outside the lens circle, looking at the street's sides, with pseudo labels only
+/// when asked.
+#[test]
+fn fisheye_cameras_render_the_street_through_their_lens() {
+    let p = SceneParams {
+        frames: 2,
+        fisheye: true,
+        fisheye_pseudo_labels: true,
+        ..Default::default()
+    };
+    let g = generate(&p, &NoProgress).unwrap();
+    let cams: Vec<(u32, u8)> = g.cameras.iter().map(|r| (r.frame, r.camera)).collect();
+    assert_eq!(
+        cams,
+        vec![
+            (20, 0),
+            (20, 1),
+            (20, 2),
+            (20, 3),
+            (21, 0),
+            (21, 1),
+            (21, 2),
+            (21, 3)
+        ]
+    );
+    assert_eq!(g.labelled, vec![0, 2, 3, 4, 6, 7]);
+    let bvh = Bvh::build(&g.layout.parts);
+    for (row, img) in g
+        .cameras
+        .iter()
+        .zip(&g.images)
+        .filter(|(r, _)| r.camera >= 2)
+    {
+        let cam = &row.cam;
+        assert_eq!((cam.width, cam.height), (175, 175));
+        let (mut outside, mut checked) = (0, 0);
+        for y in 0..cam.height {
+            for x in 0..cam.width {
+                let i = (y * cam.width + x) as usize;
+                let Some(ray) = cam.pixel_ray(x, y) else {
+                    outside += 1;
+                    assert_eq!(img.labels[i], labels::UNLABELED);
+                    assert_eq!(&img.rgb[i * 3..i * 3 + 3], &[0, 0, 0]);
+                    continue;
+                };
+                if img.depth[i] <= 0.0 || (x + y) % 7 != 0 {
+                    continue;
+                }
+                // Fisheye depth maps hold the distance along the ray.
+                let t = img.depth[i] as f64;
+                let q = ray.at(t);
+                let (u, v, _) = cam.project(q).expect("a lens pixel's point projects");
+                assert!((u - x as f64 - 0.5).abs() < 1e-3 && (v - y as f64 - 0.5).abs() < 1e-3);
+                let hit = bvh
+                    .first_hit(&g.layout.parts, &ray, 0.0, 1e4)
+                    .expect("a pixel with depth hits a part");
+                assert!(
+                    (hit.t_in - t).abs() < 1e-3 * t.max(1.0),
+                    "{} vs {t}",
+                    hit.t_in
+                );
+                checked += 1;
+            }
+        }
+        let n = (cam.width * cam.height) as usize;
+        assert!(checked > 500, "{checked}");
+        // The lens circle leaves the corners dark: 10-30 % of the square.
+        assert!(
+            (n / 10..n * 3 / 10).contains(&outside),
+            "{outside} of {n} outside"
+        );
+        let share = |l: u8| img.labels.iter().filter(|&&x| x == l).count() as f64 / n as f64;
+        assert!(share(labels::ROAD) > 0.05 && share(SKY) > 0.05);
+        // The street's side: buildings, vegetation, parked cars (7.6 %, 2.1 % and 1.2 % of
+        // camera 2's first frame).
+        assert!(share(BUILDING) + share(VEGETATION) + share(CAR) > 0.05);
+    }
+    // The left cameras' pseudo labels are those of a scene without fisheye cameras.
+    let plain = generate(
+        &SceneParams {
+            frames: 2,
+            ..Default::default()
+        },
+        &NoProgress,
+    )
+    .unwrap();
+    assert_eq!(g.pseudo[0], plain.pseudo[0]);
+    assert_eq!(g.pseudo[3], plain.pseudo[1]);
+    let t = to_tables(&p, &g).unwrap();
+    assert_eq!(t["pseudo_labels"].num_rows(), 6);
+    assert_eq!(t["images"].num_rows(), 8);
+    let back = crate::geometry::cameras_from_table(&t["cameras"]).unwrap();
+    assert_eq!(back, g.cameras);
 }
