@@ -256,3 +256,52 @@ fn losses_of(show: &str) -> Vec<f32> {
         .filter_map(|l| l.split_whitespace().nth(col)?.parse().ok())
         .collect()
 }
+
+/// The side fisheye cameras through the pipeline: planned, trained on (colour and their pseudo
+/// labels), rendered (unlabelled and black outside the lens circle) and evaluated.
+#[test]
+fn fisheye_cameras_are_trained_rendered_and_evaluated() {
+    let ws = Workspace::new(common::TINY_PIPELINE);
+    let sets = [
+        "scene.fisheye=true",
+        "scene.fisheye_pseudo_labels=true",
+        "rays.cameras=[0, 1, 2, 3]",
+        "train.cameras=[image_00, image_01, image_02, image_03]",
+        "evaluate.cameras=[2, 3]",
+    ];
+    let args: Vec<&str> = sets.iter().flat_map(|s| ["--set", *s]).collect();
+    ws.run_ok(&args);
+    let mut export = vec!["render", "--to", "render"];
+    export.extend(&args);
+    let (code, out, err) = ws.cmd("export", &export);
+    assert_eq!(code, 0, "{out}{err}");
+    let seq = "2099_01_01_drive_0000_sync";
+    let path = ws
+        .dir()
+        .join(format!("render/semantic/{seq}_0000000020_02.png"));
+    let img = image::open(&path).unwrap().into_luma8();
+    let (w, h) = img.dimensions();
+    assert_eq!((w, h), (88, 88));
+    for (x, y) in [(0, 0), (w - 1, 0), (0, h - 1), (w - 1, h - 1)] {
+        assert_eq!(
+            img.get_pixel(x, y)[0],
+            0,
+            "corner ({x}, {y}) is outside the lens"
+        );
+    }
+    let inside = img.pixels().filter(|p| p[0] != 0).count();
+    assert!(
+        inside * 10 > (w * h) as usize * 7,
+        "{inside} labelled pixels"
+    );
+    let mut ev = vec!["evaluate", "--to", "eval"];
+    ev.extend(&args);
+    let (code, out, err) = ws.cmd("export", &ev);
+    assert_eq!(code, 0, "{out}{err}");
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&fs::read(ws.dir().join("eval/metrics.json")).unwrap()).unwrap();
+    assert!(
+        metrics["panoptic_nerf"]["miou"].as_f64().unwrap() > 0.0,
+        "{metrics}"
+    );
+}

@@ -26,7 +26,9 @@ pub struct IntersectParams {
     pub sky_interval: f64,
     /// Maximum ray length in metres considered; intervals are clipped to it.
     pub far: f64,
-    /// Camera ids to process (0 = left, 1 = right).
+    /// Cameras to plan, by number or name (0 or image_00 = left, 1 = right, 2 and 3 the side
+    /// fisheye cameras).
+    #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
     pub cameras: Vec<u8>,
 }
 

@@ -107,3 +107,30 @@ impl Camera {
         }
     }
 }
+
+/// A `cameras` parameter as camera numbers, from numbers (`0`) or KITTI-360 names
+/// (`image_00`); for `#[serde(deserialize_with)]`.
+pub fn camera_ids<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+    #[derive(serde::Deserialize)]
+    #[serde(untagged)]
+    enum Name {
+        Number(u8),
+        Text(String),
+    }
+    let names = <Vec<Name> as serde::Deserialize>::deserialize(d)?;
+    names
+        .into_iter()
+        .map(|n| match n {
+            Name::Number(c) => Ok(c),
+            Name::Text(t) => t
+                .strip_prefix("image_")
+                .filter(|k| k.len() == 2)
+                .and_then(|k| k.parse::<u8>().ok())
+                .ok_or_else(|| {
+                    serde::de::Error::custom(format!(
+                        "camera `{t}`: name KITTI-360 cameras image_00 .. image_03 (or 0 .. 3)"
+                    ))
+                }),
+        })
+        .collect()
+}

@@ -32,7 +32,9 @@ use crate::{
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvaluateParams {
-    /// Cameras evaluated (0 = left, 1 = right); KITTI-360 has GT for the left camera only.
+    /// Cameras evaluated (0 = left, 1 = right, 2 and 3 the fisheye cameras); KITTI-360 has GT
+    /// for the left camera only.
+    #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
     pub cameras: Vec<u8>,
     /// Evaluated classes (label ids); default: the paper's 14 classes.
     pub classes: Vec<u8>,
@@ -596,8 +598,10 @@ impl TypedStage for Evaluate {
     const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt"];
 
     fn validate(p: &EvaluateParams) -> Result<()> {
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
-            return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+            return Err(StageError::Params(
+                "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
+            ));
         }
         if p.classes.is_empty() {
             return Err(StageError::Params("`classes` is empty".into()));

@@ -29,7 +29,9 @@ pub struct TrainParams {
     pub train: TrainConfig,
     /// Where samples go along each ray.
     pub sampling: SamplingParams,
-    /// Cameras whose rays are trained on (0 = left, 1 = right).
+    /// Cameras whose rays are trained on (0 = left, 1 = right, 2 and 3 the fisheye cameras;
+    /// images without pseudo labels train colour only).
+    #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
     pub cameras: Vec<u8>,
     /// The engine: `fused` (default: hand-written CPU kernels of the grid field), or a burn
     /// backend: flex, ndarray, wgpu or cuda (the latter need their cargo feature).
@@ -114,8 +116,10 @@ impl TypedStage for Train {
     fn validate(p: &TrainParams) -> Result<()> {
         p.train.validate()?;
         p.sampling.validate()?;
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 1) {
-            return Err(StageError::Params("`cameras` must list 0 and/or 1".into()));
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+            return Err(StageError::Params(
+                "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
+            ));
         }
         p.backend.supports(&p.train.field)?;
         Ok(())

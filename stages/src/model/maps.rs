@@ -9,6 +9,7 @@ use rayon::prelude::*;
 
 use super::composite::{Composite, Compositor, RaySums};
 use super::field::{Field, Heads};
+use crate::geometry::Lens;
 use crate::labels;
 use crate::sampling::{self, Intervals, PlannedImage, SamplingParams, StoredRays};
 use crate::stage::{Result, StageError};
@@ -91,7 +92,22 @@ pub fn render_image(
         confidence: vec![1f32; n],
         rgb: vec![0u8; n * 3],
     };
-    let sky_ids: Vec<usize> = (0..n).filter(|&p| !rays.hits_anything(p)).collect();
+    // Pixels outside a fisheye's lens are no rays: unlabelled, no depth, black.
+    let in_lens: Vec<bool> = match rays.cam.lens {
+        Lens::Pinhole => Vec::new(),
+        Lens::Mei(_) => (0..n as u32)
+            .map(|p| rays.cam.pixel_in_lens(p % width, p / width))
+            .collect(),
+    };
+    for (p, _) in in_lens.iter().enumerate().filter(|(_, inside)| !**inside) {
+        maps.semantic[p] = labels::UNLABELED;
+        maps.fixed[p] = labels::UNLABELED;
+        maps.instance[p] = 0;
+        maps.confidence[p] = 0.0;
+    }
+    let sky_ids: Vec<usize> = (0..n)
+        .filter(|&p| !rays.hits_anything(p) && in_lens.get(p).copied().unwrap_or(true))
+        .collect();
     let sky_rgb = match sky {
         SkyColour::Fixed(c) => c,
         SkyColour::FromInput(input) => {

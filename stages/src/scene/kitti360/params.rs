@@ -27,7 +27,7 @@ pub struct Kitti360Params {
     pub frames: Vec<u32>,
     /// Cameras to load, by name or number: `image_00` (0, left), `image_01` (1, right),
     /// `image_02` (2) and `image_03` (3), the left and right side fisheye cameras.
-    #[serde(deserialize_with = "camera_names")]
+    #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
     pub cameras: Vec<u8>,
     /// Evaluation frames; when empty, every `eval_every`-th selected frame from the first.
     pub eval_frames: Vec<u32>,
@@ -268,32 +268,6 @@ impl Kitti360Params {
 /// Whether camera `c` is one of KITTI-360's fisheye cameras.
 pub fn is_fisheye(c: u8) -> bool {
     c >= 2
-}
-
-/// `cameras` as numbers, from numbers (`0`) or names (`image_00`).
-fn camera_names<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Vec<u8>, D::Error> {
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum Name {
-        Number(u8),
-        Text(String),
-    }
-    let names = Vec::<Name>::deserialize(d)?;
-    names
-        .into_iter()
-        .map(|n| match n {
-            Name::Number(c) => Ok(c),
-            Name::Text(t) => t
-                .strip_prefix("image_")
-                .filter(|k| k.len() == 2)
-                .and_then(|k| k.parse::<u8>().ok())
-                .ok_or_else(|| {
-                    serde::de::Error::custom(format!(
-                        "camera `{t}`: name KITTI-360 cameras image_00 .. image_03 (or 0 .. 3)"
-                    ))
-                }),
-        })
-        .collect()
 }
 
 /// `a..=b (n frames)`, or the list when short, for messages.
