@@ -12,6 +12,12 @@
 //! stereo_depth/<seq>/image_00/%010d.png                           16-bit metres*256 (weak depth)
 //! data_3d_raw/<seq>/velodyne_points/data/%010d.bin                LiDAR, float32 N x 4 (eval frames)
 //! calibration/calib_cam_to_velo.txt                               3x4 unrectified camera 0 -> velodyne
+//! with fisheye cameras (2, 3):
+//! data_2d_raw/<seq>/image_02|image_03/data_rgb/%010d.png          RGB (black outside the lens)
+//! calibration/image_02.yaml, image_03.yaml                        MEI intrinsics, OpenCV YAML
+//! calibration/calib_cam_to_pose.txt                               image_00 (= R_rect_00), image_02/03
+//! data_poses/<seq>/poses.txt                                      frame + 3x4 pose -> world
+//! pseudo_labels/<seq>/image_02|image_03/%010d.png                 their noisy labels, if any
 //! ```
 //!
 //! Every path is the `kitti360_scene` loader's default pattern (its `lidar` and `stereo_depth`
@@ -41,7 +47,7 @@ use glam::{DAffine3, DMat3, DVec3};
 use super::io::{image_keys, scene_info, table, write_bytes, write_png, write_text, SceneInfo};
 use super::kitti360::{self, Kitti360Params};
 use crate::geometry::{
-    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, CameraRow,
+    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, CameraRow, Lens,
     Primitive, Shape,
 };
 use crate::{labels, pngio};
@@ -102,6 +108,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     let rect_to_velo = rect_to_velo();
     write_lidar_calibration(&at, &rect_to_velo, &mut files)?;
     write_bboxes(&at, &info, &cams, &prims, &mut files)?;
+    write_fisheye_calibration(&at, &info, &cams, &mut files)?;
     write_images(&at, t, &mut files)?;
     write_gt(&at, t, &mut files)?;
     write_left_tables(&at, t, &mut files)?;
@@ -164,6 +171,96 @@ fn write_perspective(
     write_text(at.path(&at.calibration, 0, 0), &calib, files)
 }
 
+/// The fisheye cameras' calibration, when the scene has any: `image_0K.yaml` (MEI intrinsics),
+/// `calib_cam_to_pose.txt` and `poses.txt`. The pose frame is the world-oriented frame of the
+/// left camera's pose (`calib_cam_to_pose[image_00]` = `R_rect_00`, so `poses.txt` holds the
+/// lines of `cam0_to_world.txt`); a fisheye camera's extrinsics are its pose relative to the
+/// left camera, which must be the same in every frame (a rigid rig).
+fn write_fisheye_calibration(
+    at: &Kitti360Params,
+    info: &SceneInfo,
+    cams: &[CameraRow],
+    files: &mut Vec<PathBuf>,
+) -> Result<()> {
+    let mut fisheyes: Vec<u8> = cams
+        .iter()
+        .filter(|r| kitti360::is_fisheye(r.camera))
+        .map(|r| r.camera)
+        .collect();
+    fisheyes.sort_unstable();
+    fisheyes.dedup();
+    if fisheyes.is_empty() {
+        return Ok(());
+    }
+    let left = |frame: u32| {
+        cams.iter()
+            .find(|r| (r.frame, r.camera) == (frame, 0))
+            .map(|r| r.cam.cam_to_world)
+            .ok_or_else(|| {
+                StageError::Input(format!(
+                    "table `cameras`: frame {frame} has fisheye images but no left camera (the \
+                     KITTI-360 layout places fisheye cameras relative to it)"
+                ))
+            })
+    };
+    let row12 = |m: &DAffine3| {
+        affine_to_row_major(m)[..12]
+            .iter()
+            .map(|&v| num(v))
+            .collect::<Vec<_>>()
+            .join(" ")
+    };
+    let mut extrinsics = format!("image_00: {}\n", row12(&DAffine3::from_mat3(r_rect_00())));
+    for &k in &fisheyes {
+        let rows: Vec<&CameraRow> = cams.iter().filter(|r| r.camera == k).collect();
+        let rel = left(rows[0].frame)?.inverse() * rows[0].cam.cam_to_world;
+        for r in &rows {
+            let other = left(r.frame)?.inverse() * r.cam.cam_to_world;
+            if !other.abs_diff_eq(rel, 1e-9) {
+                return Err(StageError::Input(format!(
+                    "table `cameras`: camera {k} moves relative to the left camera between frames \
+                     {} and {}; the KITTI-360 layout needs a rigid rig",
+                    rows[0].frame, r.frame
+                )));
+            }
+        }
+        let _ = writeln!(extrinsics, "image_{k:02}: {}", row12(&rel));
+        let c = &rows[0].cam;
+        let Lens::Mei(m) = c.lens else {
+            return Err(StageError::Input(format!(
+                "table `cameras`: camera {k} is a fisheye camera of KITTI-360 but has a {} lens",
+                c.lens.name()
+            )));
+        };
+        let yaml = format!(
+            "%YAML:1.0\n---\nmodel_type: MEI\ncamera_name: image_{k:02}\nimage_width: {}\n\
+             image_height: {}\nmirror_parameters:\n   xi: {}\ndistortion_parameters:\n   \
+             k1: {}\n   k2: {}\n   p1: {}\n   p2: {}\nprojection_parameters:\n   gamma1: {}\n   \
+             gamma2: {}\n   u0: {}\n   v0: {}\n",
+            c.width,
+            c.height,
+            num(m.xi),
+            num(m.k1),
+            num(m.k2),
+            num(m.p1),
+            num(m.p2),
+            num(c.fx),
+            num(c.fy),
+            num(c.cx - 0.5),
+            num(c.cy - 0.5),
+        );
+        write_text(at.path(&at.fisheye_calibration, 0, k), &yaml, files)?;
+    }
+    write_text(at.file(&at.cam_to_pose), &extrinsics, files)?;
+    let mut poses = String::new();
+    for row in cams.iter().filter(|r| r.camera == 0) {
+        let mut m = row.cam.cam_to_world;
+        m.translation += info.origin;
+        let _ = writeln!(poses, "{} {}", row.frame, row12(&m));
+    }
+    write_text(at.file(&at.imu_poses), &poses, files)
+}
+
 /// `calib_cam_to_velo.txt`: unrectified camera 0 -> velodyne = rectified -> velodyne after
 /// unrectified -> rectified.
 fn write_lidar_calibration(
@@ -203,7 +300,7 @@ fn write_images(at: &Kitti360Params, t: &Tables, files: &mut Vec<PathBuf>) -> Re
     let images = table(t, "images")?;
     let rgb = tables::get_binary(images, "images", "rgb")?;
     for (i, (f, cam, w, h)) in image_keys(images, "images")?.into_iter().enumerate() {
-        let path = at.path(&at.images, f, cam);
+        let path = kitti360::image_path(at, &(f, cam, w, h));
         write_png(
             path,
             w,
@@ -247,9 +344,14 @@ fn write_left_tables(at: &Kitti360Params, t: &Tables, files: &mut Vec<PathBuf>) 
     let pl = table(t, "pseudo_labels")?;
     let pl_col = tables::get_list::<UInt8Type>(pl, "pseudo_labels", "labels")?;
     for (i, (f, cam, w, h)) in image_keys(pl, "pseudo_labels")?.into_iter().enumerate() {
-        left_only("pseudo_labels", f, cam)?;
+        let path = if kitti360::is_fisheye(cam) {
+            at.path(kitti360::FISHEYE_PSEUDO_LABELS_PATTERN, f, cam)
+        } else {
+            left_only("pseudo_labels", f, cam)?;
+            at.path(&at.pseudo_labels, f, 0)
+        };
         write_png(
-            at.path(&at.pseudo_labels, f, 0),
+            path,
             w,
             h,
             image::ExtendedColorType::L8,

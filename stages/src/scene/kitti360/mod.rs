@@ -44,6 +44,7 @@ pub mod parse;
 mod read;
 
 pub use params::{is_fisheye, EvalGt, Kitti360Params};
+pub use read::Key;
 
 use std::path::PathBuf;
 
@@ -59,7 +60,7 @@ use crate::{tables, Progress, Result, Tables};
 use fisheye::Fisheye;
 use read::{
     camera_rows, check_eval_gt, load_each, load_gt_instance, load_gt_semantic, load_lidar,
-    load_primitives, load_stereo_depth, Key,
+    load_primitives, load_stereo_depth,
 };
 
 /// Where `pipe export scene` writes the LiDAR scans (KITTI-360's own layout); `lidar` is off
@@ -110,8 +111,11 @@ pub fn input_files(p: &Kitti360Params) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// Where `pipe export scene` writes the fisheye cameras' pseudo labels (KITTI-360 has none).
+pub const FISHEYE_PSEUDO_LABELS_PATTERN: &str = "pseudo_labels/{seq}/image_{cam}/{frame}.png";
+
 /// The image file of `k`: rectified perspective, or fisheye.
-fn image_path(p: &Kitti360Params, k: &Key) -> PathBuf {
+pub fn image_path(p: &Kitti360Params, k: &Key) -> PathBuf {
     let pattern = if is_fisheye(k.1) {
         &p.fisheye_images
     } else {

@@ -137,7 +137,7 @@ impl Kitti360Params {
         Path::new(&self.root).join(s)
     }
 
-    pub(super) fn file(&self, pattern: &str) -> PathBuf {
+    pub(crate) fn file(&self, pattern: &str) -> PathBuf {
         self.path(pattern, 0, 0)
     }
 

@@ -123,7 +123,7 @@ pub(super) fn is_unit_cube(v: &[DVec3], f: &[[u32; 3]]) -> bool {
 }
 
 /// An image: (frame, camera, width, height).
-pub(super) type Key = (u32, u8, u32, u32);
+pub type Key = (u32, u8, u32, u32);
 
 /// Loads one optional per-image file for every key; `None` for keys whose file is absent.
 pub(super) fn load_each<T: Send>(
