@@ -16,7 +16,7 @@ use glam::DQuat;
 
 use crate::geometry::{self, Camera, CameraRow, DAffine3, DVec3};
 use crate::intervals::{plan_image, ImagePlan, IntersectParams};
-use crate::model::maps::{render_image, ImageMaps, Renderer, SkyColour};
+use crate::model::maps::{lens_mask, render_image, ImageMaps, Renderer, SkyColour};
 use crate::model::{weights, EngineChoice, Heads};
 use crate::report::panoptic_colors;
 use crate::sampling::{PlannedImage, PrimInfo, SamplingParams};
@@ -100,6 +100,12 @@ impl Default for RenderParams {
 }
 
 pub struct Render;
+
+/// Whether two cameras map pixels to the same camera-frame rays (poses aside).
+fn same_pixels(a: &Camera, b: &Camera) -> bool {
+    (a.width, a.height, a.fx, a.fy, a.cx, a.cy, a.lens)
+        == (b.width, b.height, b.fx, b.fy, b.cx, b.cy, b.lens)
+}
 
 /// The sequence name of the scene (`scene` when it has none).
 fn sequence(inputs: &Inputs) -> Result<String> {
@@ -340,6 +346,8 @@ impl TypedStage for Render {
         }
         let seq = sequence(inputs)?;
         let mut out = inputs.writer("label_maps")?;
+        // The lens mask of each camera, kept while its intrinsics stay the same.
+        let mut masks: HashMap<u8, (Camera, Vec<bool>)> = HashMap::new();
         let (mut done, mut sky_sum) = (0u64, [0f32; 3]);
         for &(row, (frame, camera)) in &planned {
             let cam = &camera_of((frame, camera))?.cam;
@@ -351,7 +359,15 @@ impl TypedStage for Render {
             })?;
             let input = images.row(*input)?;
             let rgb = tables::get_binary(&input, "images", "rgb")?.value(0);
-            let (maps, sky) = render_image(&r, &rays, frame, camera, SkyColour::FromInput(rgb))?;
+            let mask = match masks.get(&camera) {
+                Some((c, m)) if same_pixels(c, cam) => m,
+                _ => {
+                    masks.insert(camera, (cam.clone(), lens_mask(cam)));
+                    &masks[&camera].1
+                }
+            };
+            let (maps, sky) =
+                render_image(&r, &rays, mask, frame, camera, SkyColour::FromInput(rgb))?;
             for (acc, v) in sky_sum.iter_mut().zip(sky) {
                 *acc += v;
             }
@@ -371,6 +387,7 @@ impl TypedStage for Render {
                 let (maps, _) = render_image(
                     &renderer(p.colour != Colour::None),
                     &rays,
+                    &lens_mask(cam),
                     *frame,
                     *camera,
                     SkyColour::Fixed(scene_sky),

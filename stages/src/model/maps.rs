@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use super::composite::{Composite, Compositor, RaySums};
 use super::field::{Field, Heads};
-use crate::geometry::Lens;
+use crate::geometry::{Camera, Lens};
 use crate::labels;
 use crate::sampling::{self, Intervals, PlannedImage, SamplingParams, StoredRays};
 use crate::stage::{Result, StageError};
@@ -60,8 +60,19 @@ pub enum SkyColour<'a> {
     Fixed([f32; 3]),
 }
 
-/// Renders one image: its rays, with the plan of each pixel, and its frame and camera id.
-/// Returns the maps and the sky colour used.
+/// Which pixels of `cam` see through its lens, row-major; empty for a pinhole (all of them).
+/// The same for every image of a camera: compute it once per camera.
+pub fn lens_mask(cam: &Camera) -> Vec<bool> {
+    match cam.lens {
+        Lens::Pinhole => Vec::new(),
+        Lens::Mei(_) => (0..cam.width * cam.height)
+            .map(|p| cam.pixel_in_lens(p % cam.width, p / cam.width))
+            .collect(),
+    }
+}
+
+/// Renders one image: its rays, with the plan of each pixel, the lens mask of its camera
+/// ([`lens_mask`]), and its frame and camera id. Returns the maps and the sky colour used.
 ///
 /// With [`Renderer::adaptive`], only the pixels of a grid of spacing
 /// [`Renderer::coarse_stride`] (and the last row and column) are rendered first; then, halving
@@ -73,6 +84,7 @@ pub enum SkyColour<'a> {
 pub fn render_image(
     r: &Renderer,
     rays: &PlannedImage,
+    in_lens: &[bool],
     frame: u32,
     camera: u8,
     sky: SkyColour,
@@ -93,12 +105,12 @@ pub fn render_image(
         rgb: vec![0u8; n * 3],
     };
     // Pixels outside a fisheye's lens are no rays: unlabelled, no depth, black.
-    let in_lens: Vec<bool> = match rays.cam.lens {
-        Lens::Pinhole => Vec::new(),
-        Lens::Mei(_) => (0..n as u32)
-            .map(|p| rays.cam.pixel_in_lens(p % width, p / width))
-            .collect(),
-    };
+    if !in_lens.is_empty() && in_lens.len() != n {
+        return Err(StageError::Failed(format!(
+            "lens mask of {} pixels for a {width}x{height} image",
+            in_lens.len()
+        )));
+    }
     for (p, _) in in_lens.iter().enumerate().filter(|(_, inside)| !**inside) {
         maps.semantic[p] = labels::UNLABELED;
         maps.fixed[p] = labels::UNLABELED;
