@@ -353,7 +353,10 @@ mod tests {
             if let Some(p) = m.to_plane(d) {
                 let back = m.from_plane(p).expect("a projected point lifts");
                 prop_assert!((back - d).length() < 1e-9, "{d} -> {p} -> {back}");
-                prop_assert!((m.to_plane(back * 5.0).unwrap() - p).length() < 1e-12);
+                // Relative: plane points reach 1e3 and more near 95 degrees with a small xi,
+                // where one f64 ulp is already 1e-13.
+                let again = m.to_plane(back * 5.0).unwrap();
+                prop_assert!((again - p).length() < 1e-12 * p.length().max(1.0), "{again} vs {p}");
             } else {
                 prop_assert!(xi < 1.0 || k1 < 0.0 || 1.0 + xi * d.z <= 1e-9,
                     "{d} does not project with {m:?}");
