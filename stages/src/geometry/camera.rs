@@ -44,11 +44,18 @@ impl Camera {
     /// The world ray from the camera centre through image point `(u, v)`; `None` outside the
     /// lens.
     pub fn ray(&self, u: f64, v: f64) -> Option<Ray> {
+        self.ray_and_dir_cam(u, v).map(|(ray, _)| ray)
+    }
+
+    /// [`Camera::ray`] and its camera-frame direction, from one lift (a Newton solve for a
+    /// fisheye).
+    pub fn ray_and_dir_cam(&self, u: f64, v: f64) -> Option<(Ray, DVec3)> {
         let d = self.dir_cam(u, v)?;
-        Some(Ray {
+        let ray = Ray {
             origin: self.centre(),
             dir: self.cam_to_world.transform_vector3(d).normalize(),
-        })
+        };
+        Some((ray, d))
     }
 
     /// The ray through the centre of pixel `(x, y)`; `None` for a pixel outside the lens (which

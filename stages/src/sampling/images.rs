@@ -8,7 +8,7 @@ use std::collections::HashMap;
 use arrow::datatypes::{Float32Type, Float64Type, UInt32Type, UInt8Type};
 use arrow::record_batch::RecordBatch;
 
-use super::rays::{pixel_ray, Intervals, PrimInfo, RayTargets, Rays, SceneRay, NONE};
+use super::rays::{pixel_ray_f64, ray_f32, Intervals, PrimInfo, RayTargets, Rays, SceneRay, NONE};
 use crate::geometry::{self, Primitive};
 use crate::intervals::{IntersectParams, RayPlan};
 use crate::stage::{Inputs, Result, StageError};
@@ -102,11 +102,9 @@ impl Rays for ImageRays<'_> {
         let (im, p) = self.locate(r);
         let w = im.cam.width;
         let (x, y) = (p as u32 % w, p as u32 / w);
-        let (origin, dir, z_scale) = pixel_ray(&im.cam, x, y)?;
-        // The f64 ray the plan was traced with (`pixel_ray` said the pixel has one).
-        if let Some(ray) = im.cam.pixel_ray(x, y) {
-            buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
-        }
+        let (ray, z_scale) = pixel_ray_f64(&im.cam, x, y)?;
+        buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
+        let (origin, dir) = ray_f32(&ray);
         if buf.t_in.len() != im.hits[p] as usize {
             return Err(StageError::Input(format!(
                 "ray_intervals does not match the scene: pixel ({x}, {y}) of frame {} camera {} \

@@ -190,21 +190,30 @@ impl StoredRays for PlannedImage<'_> {
 /// The origin, unit direction and z scale of pixel `(x, y)` of `cam` as f32 (computed in f64);
 /// an error for a pixel outside the lens (no ray: the plan gives it no samples).
 pub fn pixel_ray(cam: &geometry::Camera, x: u32, y: u32) -> Result<([f32; 3], [f32; 3], f32)> {
-    let o = cam.centre();
-    let (Some(ray), Some(d_cam)) = (
-        cam.pixel_ray(x, y),
-        cam.dir_cam(x as f64 + 0.5, y as f64 + 0.5),
-    ) else {
-        return Err(StageError::Input(format!(
-            "pixel ({x}, {y}) is outside the camera's lens and has no ray"
-        )));
-    };
-    let d = ray.dir;
-    Ok((
-        [o.x as f32, o.y as f32, o.z as f32],
-        [d.x as f32, d.y as f32, d.z as f32],
-        cam.depth_scale(d_cam) as f32,
-    ))
+    pixel_ray_f64(cam, x, y).map(|(ray, z_scale)| {
+        let (origin, dir) = ray_f32(&ray);
+        (origin, dir, z_scale)
+    })
+}
+
+/// Origin and direction of `ray` as the f32 the network sees.
+pub fn ray_f32(ray: &geometry::Ray) -> ([f32; 3], [f32; 3]) {
+    (
+        ray.origin.as_vec3().to_array(),
+        ray.dir.as_vec3().to_array(),
+    )
+}
+
+/// The f64 ray of pixel `(x, y)` (the one the plan was traced with) and its z scale.
+pub fn pixel_ray_f64(cam: &geometry::Camera, x: u32, y: u32) -> Result<(geometry::Ray, f32)> {
+    let (ray, d_cam) = cam
+        .ray_and_dir_cam(x as f64 + 0.5, y as f64 + 0.5)
+        .ok_or_else(|| {
+            StageError::Input(format!(
+                "pixel ({x}, {y}) is outside the camera's lens and has no ray"
+            ))
+        })?;
+    Ok((ray, cam.depth_scale(d_cam) as f32))
 }
 
 /// Rays given one by one (tests and toy scenes): per-ray origin, direction, ragged intervals and
