@@ -300,8 +300,51 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     assert_eq!(code, 0, "{out}{err}");
     let metrics: serde_json::Value =
         serde_json::from_slice(&fs::read(ws.dir().join("eval/metrics.json")).unwrap()).unwrap();
-    assert!(
-        metrics["panoptic_nerf"]["miou"].as_f64().unwrap() > 0.0,
-        "{metrics}"
+    let fisheye_only = metrics["panoptic_nerf"].clone();
+    assert!(fisheye_only["miou"].as_f64().unwrap() > 0.0, "{metrics}");
+
+    // One evaluation of both camera models: per-model scores equal separate evaluations, the
+    // pixels add up, and labels agree across the models (cross-view MC).
+    let mut both: Vec<&str> = args[..args.len() - 2].to_vec();
+    both.extend(["--set", "evaluate.cameras=[image_00, image_02, image_03]"]);
+    ws.run_ok(&both);
+    let mut ev = vec!["evaluate", "--to", "eval_both"];
+    ev.extend(&both);
+    let (code, out, err) = ws.cmd("export", &ev);
+    assert_eq!(code, 0, "{out}{err}");
+    let m: serde_json::Value =
+        serde_json::from_slice(&fs::read(ws.dir().join("eval_both/metrics.json")).unwrap())
+            .unwrap();
+    let by = &m["by_camera_model"];
+    for key in ["miou", "acc", "pq", "pixels", "frames"] {
+        assert_eq!(
+            by["fisheye"]["panoptic_nerf"][key], fisheye_only[key],
+            "{key}: {by}"
+        );
+    }
+    let px = |v: &serde_json::Value| v["pixels"].as_f64().unwrap();
+    assert_eq!(
+        px(&by["fisheye"]["panoptic_nerf"]) + px(&by["perspective"]["panoptic_nerf"]),
+        px(&m["panoptic_nerf"]),
+        "{m}"
     );
+    assert!(
+        by["perspective"]["panoptic_nerf"]["frames"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
+    for method in ["panoptic_nerf", "first_primitive"] {
+        let mc = by["perspective_fisheye"][method]["mc"].as_f64().unwrap();
+        assert!(mc > 0.5 && mc <= 1.0, "{method} cross-view MC {mc}");
+    }
+
+    // The report shows the per-model table and pictures of fisheye frames.
+    let mut rep = vec!["report", "--to", "report"];
+    rep.extend(&both);
+    let (code, out, err) = ws.cmd("export", &rep);
+    assert_eq!(code, 0, "{out}{err}");
+    let html = fs::read_to_string(ws.dir().join("report/report.html")).unwrap();
+    assert!(html.contains("Per camera model"));
+    assert!(html.contains("cam 2</td>") && html.contains("cam 3</td>"));
 }

@@ -22,8 +22,9 @@ use crate::{
     geometry::{self, Bvh, CameraRow, Primitive},
     labels,
     metrics::{
-        multiview_consistency, ConfusionMatrix, Consistency, DepthAccumulator, LabelledView,
-        PanopticAccumulator, PanopticConfig, PanopticResult, Pinhole, PqSummary,
+        cross_view_consistency, multiview_consistency, ConfusionMatrix, Consistency,
+        DepthAccumulator, LabelledView, PanopticAccumulator, PanopticConfig, PanopticResult,
+        Pinhole, PqSummary,
     },
     tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Table, TableSet, Tables,
     TypedStage,
@@ -336,16 +337,26 @@ impl<'a> Sources<'a> {
     }
 }
 
-/// The accumulators of every method, and what the per-frame pass keeps for later.
-struct Evaluation {
-    sums: BTreeMap<&'static str, MethodSums>,
-    /// Label maps per method per evaluated image, kept for multi-view consistency.
-    labels_of: BTreeMap<(&'static str, u32, u8), Vec<u8>>,
-    pseudo_frames: usize,
-    gt: GtRows,
+/// The camera model of an evaluated image, as the `camera_metrics` table names it.
+fn camera_model(c: &CameraRow) -> &'static str {
+    match c.cam.lens {
+        geometry::Lens::Pinhole => "perspective",
+        geometry::Lens::Mei(_) => "fisheye",
+    }
 }
 
-impl Evaluation {
+/// Scores of labels from perspective views carried into fisheye views (cross-view MC).
+const ACROSS_MODELS: &str = "perspective_fisheye";
+
+/// The accumulators of every method over one set of images (all evaluated images, or one
+/// camera model's).
+struct Group {
+    sums: BTreeMap<&'static str, MethodSums>,
+    frames: usize,
+    pseudo_frames: usize,
+}
+
+impl Group {
     fn new(p: &EvaluateParams) -> Result<Self> {
         let pan_cfg = PanopticConfig {
             classes: p.classes.clone(),
@@ -382,140 +393,56 @@ impl Evaluation {
         sums.insert("first_primitive", new_sums(true, false)?);
         Ok(Self {
             sums,
-            labels_of: BTreeMap::new(),
+            frames: 0,
             pseudo_frames: 0,
-            gt: GtRows::default(),
         })
     }
 
-    /// Scores every method on the evaluation image `c`.
-    fn add_frame(
-        &mut self,
-        src: &Sources,
-        c: &CameraRow,
-        prims: &[Primitive],
-        bvh: &Bvh,
-    ) -> Result<()> {
-        let missing = |what: &str| {
-            StageError::Input(format!(
-                "no `{what}` row for frame {} camera {}",
-                c.frame, c.camera
-            ))
-        };
-        let key = (c.frame, c.camera);
-        let g = src.gt_sem.get(&key).ok_or_else(|| missing("gt_semantic"))?;
-        let gi = src
-            .gt_inst
-            .get(&key)
-            .ok_or_else(|| missing("gt_instance"))?;
-        let m_row = src.maps.get(key)?.ok_or_else(|| missing("label_maps"))?;
-        let m_index = index_images(&m_row, "label_maps")?;
-        let m = &m_index[&key];
-        if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
-            || (m.width, m.height) != (g.width, g.height)
-        {
-            return Err(StageError::Input(format!(
-                "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
-                c.frame, c.camera
-            )));
-        }
-        let gsem = map_u8(g, "gt_semantic", "labels")?;
-        let ginst = map_u16(gi, "gt_instance", "instances")?;
-        let ours = map_u8(m, "label_maps", "semantic")?;
-        let ours_inst = map_u16(m, "label_maps", "instance")?;
-        let fixed = map_u8(m, "label_maps", "fixed_semantic")?;
-        let depth = map_f32(m, "label_maps", "depth")?;
-        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
-        self.gt.push(c, g, gsem, ginst);
-
+    /// One evaluated image's maps (`pseudo`: the pseudo labels, where the image has them).
+    fn add(&mut self, f: &FrameMaps) -> Result<()> {
+        self.frames += 1;
         let s = self.sums.get_mut("panoptic_nerf").unwrap();
-        s.confusion.add(gsem, ours)?;
-        s.add_panoptic(gsem, ginst, ours, ours_inst)?;
-        if let Some(l) = src.lidar_depth(key)? {
-            s.depth.as_mut().unwrap().add(depth, l)?;
+        s.confusion.add(f.gsem, f.ours)?;
+        s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
+        if let Some(l) = f.lidar {
+            s.depth.as_mut().unwrap().add(f.depth, l)?;
         }
-        self.labels_of
-            .insert(("panoptic_nerf", c.frame, c.camera), ours.to_vec());
-
-        self.sums
-            .get_mut("fixed_field")
-            .unwrap()
-            .confusion
-            .add(gsem, fixed)?;
-        self.labels_of
-            .insert(("fixed_field", c.frame, c.camera), fixed.to_vec());
-
+        let s = self.sums.get_mut("fixed_field").unwrap();
+        s.confusion.add(f.gsem, f.fixed)?;
         let s = self.sums.get_mut("first_primitive").unwrap();
-        s.confusion.add(gsem, &fp_sem)?;
-        s.add_panoptic(gsem, ginst, &fp_sem, &fp_inst)?;
-        self.labels_of
-            .insert(("first_primitive", c.frame, c.camera), fp_sem);
-
-        if let Some(ps_row) = src.pseudo.get(key)? {
-            let ps_index = index_images(&ps_row, "pseudo_labels")?;
-            let ps = map_u8(&ps_index[&key], "pseudo_labels", "labels")?;
-            self.sums
-                .get_mut("pseudo_labels")
-                .unwrap()
-                .confusion
-                .add(gsem, ps)?;
-            self.labels_of
-                .insert(("pseudo_labels", c.frame, c.camera), ps.to_vec());
+        s.confusion.add(f.gsem, &f.fp_sem)?;
+        s.add_panoptic(f.gsem, f.ginst, &f.fp_sem, &f.fp_inst)?;
+        if let Some(ps) = f.pseudo {
+            let s = self.sums.get_mut("pseudo_labels").unwrap();
+            s.confusion.add(f.gsem, ps)?;
             self.pseudo_frames += 1;
         }
         Ok(())
     }
 
-    /// Multi-view consistency over consecutive evaluation frames of each camera.
-    fn add_consistency(&mut self, src: &Sources, eval: &[&CameraRow], distance: f64) -> Result<()> {
-        for w in eval.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            if a.camera != b.camera {
-                continue;
-            }
-            let (Some(da), Some(db)) = (
-                src.lidar_depth((a.frame, a.camera))?,
-                src.lidar_depth((b.frame, b.camera))?,
-            ) else {
-                continue;
-            };
-            for &method in METHODS {
-                let (Some(ma), Some(mb)) = (
-                    self.labels_of.get(&(method, a.frame, a.camera)),
-                    self.labels_of.get(&(method, b.frame, b.camera)),
-                ) else {
-                    continue;
-                };
-                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), distance)?;
-                self.sums
-                    .get_mut(method)
-                    .unwrap()
-                    .mc
-                    .as_mut()
-                    .unwrap()
-                    .merge(&c);
-            }
-        }
-        Ok(())
+    fn add_mc(&mut self, method: &str, c: &Consistency) {
+        self.sums
+            .get_mut(method)
+            .unwrap()
+            .mc
+            .as_mut()
+            .unwrap()
+            .merge(c);
     }
 
-    /// The `metrics` and `class_iou` tables, over `frames` evaluation images.
-    fn score_tables(&self, frames: usize) -> Result<(RecordBatch, RecordBatch)> {
-        let mut method_col = Vec::new();
-        let mut metric_col = Vec::new();
-        let mut values: Vec<Option<f64>> = Vec::new();
-        let mut push = |m: &str, k: &str, v: Option<f64>| {
-            method_col.push(m.to_string());
-            metric_col.push(k.to_string());
-            values.push(v.filter(|x| x.is_finite()));
-        };
-        let mut ciou = ClassRows::default();
+    /// Every method's scores, as `push(method, metric, value)` calls; each method's confusion
+    /// matrix goes to `ciou`.
+    fn scores(
+        &self,
+        mut push: impl FnMut(&str, &str, Option<f64>),
+        mut ciou: impl FnMut(&str, &ConfusionMatrix),
+    ) {
         for &method in METHODS {
             let s = &self.sums[method];
             let frames = if method == "pseudo_labels" {
                 self.pseudo_frames
             } else {
-                frames
+                self.frames
             };
             push(method, "frames", Some(frames as f64));
             push(method, "pixels", Some(s.confusion.total() as f64));
@@ -552,24 +479,258 @@ impl Evaluation {
             let d = s.depth.as_ref().map(|d| d.result());
             push(method, "depth_rmse", d.and_then(|d| d.rmse));
             push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
-            ciou.push(method, &s.confusion);
+            ciou(method, &s.confusion);
         }
-        let metrics = tables::build(
-            "metrics",
-            vec![
-                tables::strings(&method_col),
-                tables::strings(&metric_col),
-                Arc::new(Float64Array::from(values)) as ArrayRef,
-            ],
-        )?;
-        Ok((metrics, ciou.table()?))
+    }
+}
+
+/// One evaluated image's maps: GT, each method's labels, LiDAR where the image has it.
+struct FrameMaps<'a> {
+    gsem: &'a [u8],
+    ginst: &'a [u16],
+    ours: &'a [u8],
+    ours_inst: &'a [u16],
+    fixed: &'a [u8],
+    depth: &'a [f32],
+    fp_sem: Vec<u8>,
+    fp_inst: Vec<u16>,
+    pseudo: Option<&'a [u8]>,
+    lidar: Option<&'a [f32]>,
+}
+
+/// The accumulators over all evaluated images and per camera model, and what the per-frame
+/// pass keeps for later.
+struct Evaluation {
+    all: Group,
+    by_model: BTreeMap<&'static str, Group>,
+    /// Cross-view consistency per method, perspective LiDAR points carried into fisheye views.
+    across: BTreeMap<&'static str, Consistency>,
+    /// Label maps per method per evaluated image, kept for multi-view consistency.
+    labels_of: BTreeMap<(&'static str, u32, u8), Vec<u8>>,
+    gt: GtRows,
+}
+
+impl Evaluation {
+    fn new(p: &EvaluateParams, models: &[&'static str]) -> Result<Self> {
+        Ok(Self {
+            all: Group::new(p)?,
+            by_model: models
+                .iter()
+                .map(|&m| Ok((m, Group::new(p)?)))
+                .collect::<Result<_>>()?,
+            across: BTreeMap::new(),
+            labels_of: BTreeMap::new(),
+            gt: GtRows::default(),
+        })
+    }
+
+    /// Scores every method on the evaluation image `c`.
+    fn add_frame(
+        &mut self,
+        src: &Sources,
+        c: &CameraRow,
+        prims: &[Primitive],
+        bvh: &Bvh,
+    ) -> Result<()> {
+        let missing = |what: &str| {
+            StageError::Input(format!(
+                "no `{what}` row for frame {} camera {}",
+                c.frame, c.camera
+            ))
+        };
+        let key = (c.frame, c.camera);
+        let g = src.gt_sem.get(&key).ok_or_else(|| missing("gt_semantic"))?;
+        let gi = src
+            .gt_inst
+            .get(&key)
+            .ok_or_else(|| missing("gt_instance"))?;
+        let m_row = src.maps.get(key)?.ok_or_else(|| missing("label_maps"))?;
+        let m_index = index_images(&m_row, "label_maps")?;
+        let m = &m_index[&key];
+        if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
+            || (m.width, m.height) != (g.width, g.height)
+        {
+            return Err(StageError::Input(format!(
+                "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
+                c.frame, c.camera
+            )));
+        }
+        let ps_row = src.pseudo.get(key)?;
+        let ps_index = ps_row
+            .as_ref()
+            .map(|r| index_images(r, "pseudo_labels"))
+            .transpose()?;
+        let pseudo = ps_index
+            .as_ref()
+            .map(|i| map_u8(&i[&key], "pseudo_labels", "labels"))
+            .transpose()?;
+        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
+        let f = FrameMaps {
+            gsem: map_u8(g, "gt_semantic", "labels")?,
+            ginst: map_u16(gi, "gt_instance", "instances")?,
+            ours: map_u8(m, "label_maps", "semantic")?,
+            ours_inst: map_u16(m, "label_maps", "instance")?,
+            fixed: map_u8(m, "label_maps", "fixed_semantic")?,
+            depth: map_f32(m, "label_maps", "depth")?,
+            fp_sem,
+            fp_inst,
+            pseudo,
+            lidar: src.lidar_depth(key)?,
+        };
+        self.gt.push(c, g, f.gsem, f.ginst);
+        self.all.add(&f)?;
+        self.by_model
+            .get_mut(camera_model(c))
+            .expect("a group per evaluated camera model")
+            .add(&f)?;
+        for (method, labels) in [
+            ("panoptic_nerf", Some(f.ours)),
+            ("fixed_field", Some(f.fixed)),
+            ("first_primitive", Some(&f.fp_sem[..])),
+            ("pseudo_labels", f.pseudo),
+        ] {
+            if let Some(l) = labels {
+                self.labels_of
+                    .insert((method, c.frame, c.camera), l.to_vec());
+            }
+        }
+        Ok(())
+    }
+
+    /// The label maps `method` gave images `a` and `b`, when it labelled both.
+    fn label_pair(
+        &self,
+        method: &'static str,
+        a: &CameraRow,
+        b: &CameraRow,
+    ) -> Option<(&[u8], &[u8])> {
+        let get = |c: &CameraRow| {
+            self.labels_of
+                .get(&(method, c.frame, c.camera))
+                .map(Vec::as_slice)
+        };
+        Some((get(a)?, get(b)?))
+    }
+
+    /// Multi-view consistency over consecutive evaluation frames of each camera, and across
+    /// camera models: each frame's perspective LiDAR points carried into its fisheye views.
+    fn add_consistency(&mut self, src: &Sources, eval: &[&CameraRow], distance: f64) -> Result<()> {
+        for w in eval.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if a.camera != b.camera {
+                continue;
+            }
+            let (Some(da), Some(db)) = (
+                src.lidar_depth((a.frame, a.camera))?,
+                src.lidar_depth((b.frame, b.camera))?,
+            ) else {
+                continue;
+            };
+            for &method in METHODS {
+                let Some((ma, mb)) = self.label_pair(method, a, b) else {
+                    continue;
+                };
+                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), distance)?;
+                self.all.add_mc(method, &c);
+                self.by_model
+                    .get_mut(camera_model(a))
+                    .expect("a group per evaluated camera model")
+                    .add_mc(method, &c);
+            }
+        }
+        for a in eval.iter().filter(|c| camera_model(c) == "perspective") {
+            let Some(da) = src.lidar_depth((a.frame, a.camera))? else {
+                continue;
+            };
+            for b in eval
+                .iter()
+                .filter(|b| b.frame == a.frame && camera_model(b) == "fisheye")
+            {
+                for &method in METHODS {
+                    let Some((ma, mb)) = self.label_pair(method, a, b) else {
+                        continue;
+                    };
+                    let size = (b.cam.width as usize, b.cam.height as usize);
+                    let project = |p: [f64; 3]| {
+                        b.cam
+                            .project(geometry::DVec3::from_array(p))
+                            .map(|(u, v, _)| (u, v))
+                    };
+                    let c = cross_view_consistency(
+                        &view(a, ma, da),
+                        mb,
+                        size,
+                        labels::UNLABELED,
+                        project,
+                    )?;
+                    self.across.entry(method).or_default().merge(&c);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The `metrics`, `class_iou` and `camera_metrics` tables.
+    fn score_tables(&self) -> Result<(RecordBatch, RecordBatch, RecordBatch)> {
+        let mut rows = MetricRows::default();
+        let mut ciou = ClassRows::default();
+        self.all
+            .scores(|m, k, v| rows.push(None, m, k, v), |m, c| ciou.push(m, c));
+        let mut by_model = MetricRows::default();
+        for (&model, group) in &self.by_model {
+            group.scores(|m, k, v| by_model.push(Some(model), m, k, v), |_, _| {});
+        }
+        if !self.across.is_empty() {
+            for &method in METHODS {
+                let v = self.across.get(method).and_then(|c| c.value());
+                by_model.push(Some(ACROSS_MODELS), method, "mc", v);
+            }
+        }
+        Ok((
+            rows.table("metrics")?,
+            ciou.table()?,
+            by_model.table("camera_metrics")?,
+        ))
+    }
+}
+
+/// Rows of the `metrics` table (no camera model) or the `camera_metrics` table.
+#[derive(Default)]
+struct MetricRows {
+    model: Vec<String>,
+    method: Vec<String>,
+    metric: Vec<String>,
+    value: Vec<Option<f64>>,
+}
+
+impl MetricRows {
+    fn push(&mut self, model: Option<&str>, method: &str, metric: &str, v: Option<f64>) {
+        if let Some(m) = model {
+            self.model.push(m.to_string());
+        }
+        self.method.push(method.to_string());
+        self.metric.push(metric.to_string());
+        self.value.push(v.filter(|x| x.is_finite()));
+    }
+
+    fn table(self, name: &str) -> Result<RecordBatch> {
+        let mut cols = Vec::new();
+        if name == "camera_metrics" {
+            cols.push(tables::strings(&self.model));
+        }
+        cols.extend([
+            tables::strings(&self.method),
+            tables::strings(&self.metric),
+            Arc::new(Float64Array::from(self.value)) as ArrayRef,
+        ]);
+        tables::build(name, cols)
     }
 }
 
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -595,7 +756,7 @@ impl TypedStage for Evaluate {
         },
     ];
     const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
-    const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt"];
+    const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt", "camera_metrics"];
 
     fn validate(p: &EvaluateParams) -> Result<()> {
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
@@ -638,13 +799,16 @@ impl TypedStage for Evaluate {
         eval.sort_by_key(|c| (c.camera, c.frame));
         // No evaluation image (a sequence without 2D GT, the usual case): the tables say so
         // (`frames` 0, every score null) and the report and `metrics.json` say why.
-        let mut run = Evaluation::new(p)?;
+        let mut models: Vec<&'static str> = eval.iter().map(|c| camera_model(c)).collect();
+        models.sort_unstable();
+        models.dedup();
+        let mut run = Evaluation::new(p, &models)?;
         for (n, c) in eval.iter().enumerate() {
             progress.update(n as u64, eval.len() as u64, "evaluating");
             run.add_frame(&maps, c, &prims, &bvh)?;
         }
         run.add_consistency(&maps, &eval, p.mc_distance)?;
-        let (metrics, class_iou) = run.score_tables(eval.len())?;
+        let (metrics, class_iou, camera_metrics) = run.score_tables()?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;
         if sequence.is_empty() {
@@ -655,6 +819,7 @@ impl TypedStage for Evaluate {
             ("metrics".to_string(), metrics),
             ("class_iou".to_string(), class_iou),
             ("eval_gt".to_string(), eval_gt),
+            ("camera_metrics".to_string(), camera_metrics),
         ]))
     }
 
@@ -668,6 +833,7 @@ impl TypedStage for Evaluate {
             .map(|(k, v)| (k.to_string(), serde_json::json!(v)))
             .collect();
         json["pq_conventions"] = serde_json::Value::Object(conventions);
+        json["by_camera_model"] = camera_metrics_json(t.table("camera_metrics")?)?;
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
@@ -690,6 +856,37 @@ impl TypedStage for Evaluate {
         }
         Ok(files)
     }
+}
+
+/// `{camera model: {method: {metric: value}}}` from the `camera_metrics` table.
+pub fn camera_metrics_json(t: &RecordBatch) -> Result<serde_json::Value> {
+    let models = tables::get_strings(t, "camera_metrics", "camera_model")?;
+    let methods = tables::get_strings(t, "camera_metrics", "method")?;
+    let metrics = tables::get_strings(t, "camera_metrics", "metric")?;
+    let values = t
+        .column_by_name("value")
+        .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+        .ok_or_else(|| StageError::Input("camera_metrics.value is not float64".into()))?;
+    let mut out = serde_json::json!({});
+    for i in 0..t.num_rows() {
+        let v = if values.is_null(i) {
+            serde_json::Value::Null
+        } else {
+            serde_json::json!(values.value(i))
+        };
+        let model = out
+            .as_object_mut()
+            .expect("an object")
+            .entry(models.value(i))
+            .or_insert_with(|| serde_json::json!({}));
+        let method = model
+            .as_object_mut()
+            .expect("an object")
+            .entry(methods.value(i))
+            .or_insert_with(|| serde_json::json!({}));
+        method[metrics.value(i)] = v;
+    }
+    Ok(out)
 }
 
 /// `{method: {metric: value, ..., "class_iou": {class name: iou}}}` from the stage's tables.

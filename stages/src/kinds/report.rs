@@ -270,6 +270,92 @@ impl Page {
         Ok(present)
     }
 
+    /// The scores per camera model, when the evaluation covered fisheye cameras: one row per
+    /// (model, method), and cross-view consistency between the models.
+    fn camera_models(&mut self, t: &RecordBatch) -> Result<()> {
+        let models = tables::get_strings(t, "camera_metrics", "camera_model")?;
+        let methods = tables::get_strings(t, "camera_metrics", "method")?;
+        let metrics = tables::get_strings(t, "camera_metrics", "metric")?;
+        let values = f64_col(t, "camera_metrics", "value")?;
+        let mut by: BTreeMap<(String, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
+        for i in 0..t.num_rows() {
+            by.entry((models.value(i).into(), methods.value(i).into()))
+                .or_default()
+                .insert(
+                    metrics.value(i).into(),
+                    (!values.is_null(i)).then(|| values.value(i)),
+                );
+        }
+        if !by.keys().any(|(m, _)| m == "fisheye") {
+            return Ok(());
+        }
+        const COLS: &[(&str, &str, f64, usize)] = &[
+            ("mIoU", "miou", 100.0, 1),
+            ("Acc", "acc", 100.0, 1),
+            ("MC", "mc", 100.0, 1),
+            ("PQ", "pq", 100.0, 1),
+            ("PQ api", "pq_panopticapi", 100.0, 1),
+            ("frames", "frames", 1.0, 0),
+        ];
+        let (md, html) = (&mut self.md, &mut self.html);
+        md.push_str(
+            "
+## Per camera model
+
+| cameras | method |",
+        );
+        html.push_str("<h2>Per camera model</h2><table><tr><th>cameras</th><th>method</th>");
+        for (label, ..) in COLS {
+            let _ = write!(md, " {label} |");
+            let _ = write!(html, "<th>{label}</th>");
+        }
+        md.push_str(
+            "
+|---|---|",
+        );
+        md.push_str(&"---:|".repeat(COLS.len()));
+        md.push('\n');
+        html.push_str("</tr>");
+        for model in ["perspective", "fisheye", "perspective_fisheye"] {
+            for &m in METHODS {
+                let Some(vals) = by.get(&(model.to_string(), m.to_string())) else {
+                    continue;
+                };
+                let label = if model == "perspective_fisheye" {
+                    "perspective → fisheye (cross-view MC)"
+                } else {
+                    model
+                };
+                let _ = write!(md, "| {label} | {} |", method_label(m));
+                let _ = write!(
+                    html,
+                    "<tr{}><td>{label}</td><td>{}</td>",
+                    if m == "panoptic_nerf" {
+                        " class=\"ours\""
+                    } else {
+                        ""
+                    },
+                    method_label(m)
+                );
+                for &(_, key, scale, dec) in COLS {
+                    let v = fmt_value(vals.get(key).copied().flatten(), scale, dec);
+                    let _ = write!(md, " {v} |");
+                    let _ = write!(html, "<td>{v}</td>");
+                }
+                md.push('\n');
+                html.push_str("</tr>");
+            }
+        }
+        html.push_str("</table>");
+        let note = "Cross-view MC: each LiDAR point of a perspective evaluation image is carried \
+                    into the same frame's fisheye images; the share of points given the same \
+                    label in both (no occlusion test: the first-primitive row shows the floor \
+                    that occlusion and resolution set).";
+        md.push_str(&format!("\n{note}\n\n"));
+        let _ = write!(html, "<p class=\"cap\">{note}</p>");
+        Ok(())
+    }
+
     /// Per evaluation frame a row of pictures; without GT, the same for rendered frames spread
     /// over the sequence (no GT and error columns).
     fn pictures(
@@ -285,12 +371,28 @@ impl Page {
         let maps = Maps::new(inputs.stored("render", "label_maps")?)?;
         let gt = Maps::new(inputs.stored("evaluate", "eval_gt")?)?;
         let has_gt = !gt.index.is_empty();
-        let keys: Vec<(u32, u8)> = if has_gt {
+        let mut keys: Vec<(u32, u8)> = if has_gt {
             gt.index.keys().copied().take(p.max_frames).collect()
         } else {
             let all: Vec<(u32, u8)> = maps.index.keys().copied().collect();
             spread(&all, p.max_frames)
         };
+        // Fisheye cameras rendered but not pictured (not evaluated, or past `max_frames`): one
+        // frame of each, the middle one, so the report shows them too.
+        for camera in [2u8, 3] {
+            if keys.iter().any(|k| k.1 == camera) {
+                continue;
+            }
+            let theirs: Vec<(u32, u8)> = maps
+                .index
+                .keys()
+                .copied()
+                .filter(|k| k.1 == camera)
+                .collect();
+            if let Some(&k) = theirs.get(theirs.len() / 2) {
+                keys.push(k);
+            }
+        }
         if has_gt {
             html.push_str(
                 "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
@@ -320,12 +422,8 @@ impl Page {
             progress.update(n as u64, keys.len() as u64, "pictures");
             let m = maps.get(*key)?;
             let g = gt.get(*key)?;
-            // The size of the pictured image, from the table its key comes from.
-            let Some((w, h)) = (if has_gt { &g } else { &m })
-                .as_ref()
-                .map(Row::size)
-                .transpose()?
-            else {
+            // The size of the pictured image, from its GT or else its rendered maps.
+            let Some((w, h)) = g.as_ref().or(m.as_ref()).map(Row::size).transpose()? else {
                 continue;
             };
             let mut cells: Vec<(&str, Option<Vec<u8>>)> = vec![
@@ -347,13 +445,13 @@ impl Page {
             let ours = m.as_ref().map(|m| m.u8("semantic")).transpose()?;
             cells.push(("ours", ours.map(crate::pngio::colorize)));
             if has_gt {
-                let gsem = g
-                    .as_ref()
-                    .map(|g| g.u8("semantic"))
-                    .transpose()?
-                    .unwrap_or(&[]);
-                cells.push(("ground truth", Some(crate::pngio::colorize(gsem))));
-                cells.push(("error", ours.map(|o| error_colors(o, gsem))));
+                // Rendered images without GT (a fisheye camera not evaluated) say "n/a".
+                let gsem = g.as_ref().map(|g| g.u8("semantic")).transpose()?;
+                cells.push(("ground truth", gsem.map(crate::pngio::colorize)));
+                cells.push((
+                    "error",
+                    ours.zip(gsem).map(|(o, gsem)| error_colors(o, gsem)),
+                ));
             }
             cells.push((
                 "panoptic",
@@ -427,7 +525,7 @@ fn spread<T: Copy>(keys: &[T], n: usize) -> Vec<T> {
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
@@ -439,7 +537,7 @@ impl TypedStage for Report {
         },
         InputSlot {
             name: "evaluate",
-            tables: &["metrics", "class_iou", "eval_gt"],
+            tables: &["metrics", "class_iou", "eval_gt", "camera_metrics"],
             optional: false,
             doc: "metrics and the GT they were computed against",
         },
@@ -479,7 +577,9 @@ impl TypedStage for Report {
         let mut page = Page::new(&p.title, scene_name);
         let present = if inputs.table("evaluate", "eval_gt")?.num_rows() > 0 {
             page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
-            page.class_iou(inputs.table("evaluate", "class_iou")?)?
+            let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
+            page.camera_models(inputs.table("evaluate", "camera_metrics")?)?;
+            present
         } else {
             page.not_evaluated();
             classes_rendered(inputs.stored("render", "label_maps")?)?

@@ -158,6 +158,51 @@ pub fn multiview_consistency(
     Ok(counts)
 }
 
+/// Cross-view consistency of view `a` against a view of another camera model (a fisheye)
+/// that has no LiDAR of its own: each LiDAR point of `a` is carried into the other view by
+/// `project` (scene point -> image point `(u, v)` of that view, `None` where its lens does not
+/// see the point) and its label there is compared with its label in `a`. The same question as
+/// [`multiview_consistency`] (do two views give one 3D point one label?) with the point
+/// itself as the match. Points `project` does not place inside the `width` x `height` image,
+/// and pixels of it labelled `ignore` (outside the lens), are left out.
+///
+/// # Shapes
+/// `labels_b`: `[height * width]`, row-major.
+pub fn cross_view_consistency(
+    a: &LabelledView,
+    labels_b: &[u8],
+    (width, height): (usize, usize),
+    ignore: u8,
+    project: impl Fn([f64; 3]) -> Option<(f64, f64)> + Sync,
+) -> Result<Consistency, MetricError> {
+    a.check("view A labels/depth")?;
+    check_len("view B labels", width * height, labels_b.len())?;
+    let counts = a
+        .points()
+        .par_iter()
+        .map(|&(p, label)| {
+            let Some((u, v)) = project(p) else {
+                return Consistency::default();
+            };
+            if !(u >= 0.0 && v >= 0.0 && u < width as f64 && v < height as f64) {
+                return Consistency::default();
+            }
+            let other = labels_b[v as usize * width + u as usize];
+            if other == ignore {
+                return Consistency::default();
+            }
+            Consistency {
+                matched: 1,
+                agreeing: (other == label) as u64,
+            }
+        })
+        .reduce(Consistency::default, |mut x, y| {
+            x.merge(&y);
+            x
+        });
+    Ok(counts)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -206,6 +251,46 @@ mod tests {
         (0..W * H)
             .map(|i| if i % W < W / 2 { ROAD } else { CAR })
             .collect()
+    }
+
+    /// A second camera 1 m to the right (x) looking the same way sees the wall through its own
+    /// pinhole, written as the `project` closure; its labels are the first view's shifted by
+    /// the parallax (1 m at 5 m depth = 2 px), so agreement is exact after the shift and drops
+    /// where the second view's labels are changed.
+    #[test]
+    fn cross_view_carries_each_point_into_the_other_view() {
+        let labels = halves();
+        let depth = vec![5.0f32; W * H];
+        let a = view(&labels, &depth, IDENTITY);
+        // Camera B at x = 1: a wall point (X, Y, 5) lands at u = 10 (X - 1) / 5 + 4.
+        let project = |p: [f64; 3]| {
+            let z = p[2];
+            (z > 0.0).then(|| (K.fx * (p[0] - 1.0) / z + K.cx, K.fy * p[1] / z + K.cy))
+        };
+        // B's labels: A's shifted left by 2 px; its last 2 columns see nothing of A's points.
+        let mut b = vec![0u8; W * H];
+        for y in 0..H {
+            for x in 0..W - 2 {
+                b[y * W + x] = labels[y * W + x + 2];
+            }
+        }
+        let c = cross_view_consistency(&a, &b, (W, H), 255, project).unwrap();
+        // A's first 2 columns fall left of B's image: 6 of 8 columns pair.
+        assert_eq!(c.matched, (6 * H) as u64);
+        assert_eq!(c.agreeing, c.matched);
+        // Relabel one column of B (its H points disagree) and ignore another (they leave the count).
+        let mut b2 = b.clone();
+        for y in 0..H {
+            b2[y * W + 1] = CAR; // A's column 3: road
+            b2[y * W + 4] = 255;
+        }
+        let c = cross_view_consistency(&a, &b2, (W, H), 255, project).unwrap();
+        assert_eq!(c.matched, (5 * H) as u64);
+        assert_eq!(c.agreeing, (4 * H) as u64);
+        // A view B that sees nothing (everything behind it) pairs nothing.
+        let none = cross_view_consistency(&a, &b, (W, H), 255, |_| None).unwrap();
+        assert_eq!(none, Consistency::default());
+        assert!(cross_view_consistency(&a, &b[1..], (W, H), 255, project).is_err());
     }
 
     #[test]

@@ -26,7 +26,9 @@ pub mod panoptic;
 pub mod scores;
 
 pub use confusion::{ClassIou, ConfusionMatrix};
-pub use consistency::{multiview_consistency, Consistency, LabelledView, Pinhole};
+pub use consistency::{
+    cross_view_consistency, multiview_consistency, Consistency, LabelledView, Pinhole,
+};
 pub use depth::{DepthAccumulator, DepthMetrics};
 pub use error::{instance_number, MetricError};
 pub use panoptic::{
