@@ -12,6 +12,7 @@ use arrow::datatypes::{Float32Type, Float64Type, UInt32Type};
 use arrow::record_batch::RecordBatch;
 use serde::{Deserialize, Serialize};
 
+use crate::geometry::DVec3;
 use crate::model::TrainError;
 use crate::model::{
     fit, weights, BatchOrder, Engine, FieldSpec, LossTerm, LossTerms, ModelInfo, RayBatch,
@@ -51,14 +52,33 @@ impl Default for TrainParams {
 
 pub struct Train;
 
-/// The field spec of a scene's primitives: its classes and the bounds of its primitives.
-pub fn spec_for(prims: &PrimInfo, config: &TrainConfig) -> FieldSpec {
+/// The field spec of a scene: its classes, and as its box the bounds of its primitives
+/// (padded by 1 m) clipped to `config.field_margin` around the centres of `cameras`.
+pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> FieldSpec {
     let pad = 1.0;
+    let mut lo = prims.bounds_min.map(|v| v - pad);
+    let mut hi = prims.bounds_max.map(|v| v + pad);
+    if config.field_margin > 0.0 && !cameras.is_empty() {
+        let m = f64::from(config.field_margin);
+        for a in 0..3 {
+            let c_lo = cameras.iter().map(|c| c[a]).fold(f64::INFINITY, f64::min) - m;
+            let c_hi = cameras
+                .iter()
+                .map(|c| c[a])
+                .fold(f64::NEG_INFINITY, f64::max)
+                + m;
+            let (l, h) = (lo[a].max(c_lo as f32), hi[a].min(c_hi as f32));
+            // Primitives wholly beyond the margin on this axis: keep their own bounds.
+            if l < h {
+                (lo[a], hi[a]) = (l, h);
+            }
+        }
+    }
     FieldSpec {
         config: config.field.clone(),
         num_classes: prims.classes.len(),
-        aabb_min: prims.bounds_min.map(|v| v - pad),
-        aabb_max: prims.bounds_max.map(|v| v + pad),
+        aabb_min: lo,
+        aabb_max: hi,
         seed: config.seed,
     }
 }
@@ -81,7 +101,7 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -131,9 +151,9 @@ impl TypedStage for Train {
         if candidates.is_empty() {
             return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
         }
-        let mut trainer = p
-            .backend
-            .trainer(&p.train, spec_for(&rays.prims, &p.train))?;
+        let centres: Vec<DVec3> = rays.images.iter().map(|im| im.cam.centre()).collect();
+        let spec = spec_for(&rays.prims, &centres, &p.train);
+        let mut trainer = p.backend.trainer(&p.train, spec.clone())?;
         let iters = p.train.iterations;
         let batch = p.train.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
@@ -165,7 +185,7 @@ impl TypedStage for Train {
             }
         })?;
         let info = ModelInfo {
-            spec: spec_for(&rays.prims, &p.train),
+            spec,
             sampling: p.sampling.clone(),
             classes: rays.prims.classes.clone(),
         };
@@ -247,4 +267,57 @@ fn nothing_crossed(inputs: &Inputs, cameras: &[u8]) -> Result<String> {
         used.len(),
         prims.len()
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn prims(lo: [f32; 3], hi: [f32; 3]) -> PrimInfo {
+        PrimInfo {
+            classes: vec![7, 23],
+            bounds_min: lo,
+            bounds_max: hi,
+            ..PrimInfo::default()
+        }
+    }
+
+    /// A street's far terrain reaches 450 m; cameras drive x in 0..20 at y = 0, z = 1.6.
+    #[test]
+    fn the_field_box_is_the_primitives_clipped_around_the_cameras() {
+        let p = prims([-450.0, -450.0, -1.5], [500.0, 450.0, 18.5]);
+        let cams = [DVec3::new(0.0, 0.0, 1.6), DVec3::new(20.0, 0.0, 1.6)];
+        let config = TrainConfig::default();
+        assert_eq!(config.field_margin, 50.0);
+        let s = spec_for(&p, &cams, &config);
+        assert_eq!(s.aabb_min, [-50.0, -50.0, -2.5]);
+        assert_eq!(s.aabb_max, [70.0, 50.0, 19.5]);
+        // 0 keeps the primitives' (padded) bounds, as do scenes with no camera.
+        let whole = TrainConfig {
+            field_margin: 0.0,
+            ..config.clone()
+        };
+        let s = spec_for(&p, &cams, &whole);
+        assert_eq!(s.aabb_min, [-451.0, -451.0, -2.5]);
+        assert_eq!(s.aabb_max, [501.0, 451.0, 19.5]);
+        assert_eq!(spec_for(&p, &[], &config).aabb_max, [501.0, 451.0, 19.5]);
+        // Primitives wholly beyond the margin on an axis keep their own extent there.
+        let far = prims([200.0, -5.0, 0.0], [210.0, 5.0, 3.0]);
+        let s = spec_for(&far, &cams, &config);
+        assert_eq!((s.aabb_min[0], s.aabb_max[0]), (199.0, 211.0));
+        assert_eq!((s.aabb_min[1], s.aabb_max[1]), (-6.0, 6.0));
+        s.validate().unwrap();
+        // A negative or NaN margin is refused by name.
+        for bad in [-1.0, f32::NAN] {
+            let c = TrainConfig {
+                field_margin: bad,
+                ..config.clone()
+            };
+            assert!(c
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("field_margin"));
+        }
+    }
 }

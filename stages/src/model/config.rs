@@ -321,6 +321,12 @@ pub struct TrainConfig {
     pub iterations: usize,
     /// Seed of the initial weights and of the ray order.
     pub seed: u64,
+    /// The field's box (which the grid's resolution spans): the primitives' bounds, clipped
+    /// to this many metres around the camera centres; points beyond share the features of the
+    /// box's boundary. A street's primitives reach hundreds of metres (far terrain) while the
+    /// labelled geometry lies near the cameras: spread over 950 m, the grid's finest cells
+    /// were 1.9 m wide, too coarse for a wall or a gate. 0 = the primitives' bounds whole.
+    pub field_margin: f32,
 }
 
 impl Default for TrainConfig {
@@ -339,6 +345,7 @@ impl Default for TrainConfig {
             rays_per_batch: 1024,
             iterations: 1700,
             seed: 0,
+            field_margin: 50.0,
         }
     }
 }
@@ -355,6 +362,12 @@ impl TrainConfig {
                     t.name()
                 )));
             }
+        }
+        if !(self.field_margin.is_finite() && self.field_margin >= 0.0) {
+            return Err(invalid(format!(
+                "field_margin = {} must be finite and >= 0",
+                self.field_margin
+            )));
         }
         if self.losses.enabled().is_empty() {
             return Err(invalid("every loss weight is 0: nothing to optimise"));
