@@ -339,6 +339,31 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
         assert!(mc > 0.5 && mc <= 1.0, "{method} cross-view MC {mc}");
     }
 
+    // The depth breakdown: its `all` bin is the depth RMSE, every group covers the same LiDAR
+    // pixels, and the shares of the squared error add up to 1 within each group.
+    let rows = m["depth_breakdown"].as_array().unwrap();
+    let all = rows.iter().find(|r| r["group"] == "all").unwrap();
+    let rmse = m["panoptic_nerf"]["depth_rmse"].as_f64().unwrap();
+    assert!(
+        (all["rmse"].as_f64().unwrap() - rmse).abs() < 1e-9,
+        "{all} vs {rmse}"
+    );
+    let n = all["pixels"].as_u64().unwrap();
+    assert!(n > 0);
+    for group in ["distance", "class", "boundary", "rendered", "fixed field"] {
+        let bins: Vec<_> = rows.iter().filter(|r| r["group"] == group).collect();
+        let px: u64 = bins.iter().map(|r| r["pixels"].as_u64().unwrap()).sum();
+        let share: f64 = bins
+            .iter()
+            .map(|r| r["share_sq_error"].as_f64().unwrap())
+            .sum();
+        assert_eq!(px, n, "{group}");
+        assert!((share - 1.0).abs() < 1e-9, "{group}: {share}");
+    }
+    let interior = m["panoptic_nerf"]["depth_rmse_interior"].as_f64().unwrap();
+    let inside = rows.iter().find(|r| r["bin"] == "inside a region").unwrap();
+    assert!((inside["rmse"].as_f64().unwrap() - interior).abs() < 1e-9);
+
     // The report shows the per-model table and pictures of fisheye frames.
     let mut rep = vec!["report", "--to", "report"];
     rep.extend(&both);
@@ -346,5 +371,6 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     assert_eq!(code, 0, "{out}{err}");
     let html = fs::read_to_string(ws.dir().join("report/report.html")).unwrap();
     assert!(html.contains("Per camera model"));
+    assert!(html.contains("Depth error breakdown") && html.contains("alt=\"depth error\""));
     assert!(html.contains("cam 2</td>") && html.contains("cam 3</td>"));
 }

@@ -22,9 +22,9 @@ use crate::{
     geometry::{self, Bvh, CameraRow, Primitive},
     labels,
     metrics::{
-        cross_view_consistency, multiview_consistency, ConfusionMatrix, Consistency,
-        DepthAccumulator, LabelledView, PanopticAccumulator, PanopticConfig, PanopticResult,
-        Pinhole, PqSummary,
+        cross_view_consistency, multiview_consistency, BinResult, ConfusionMatrix, Consistency,
+        DepthAccumulator, DepthBins, LabelledView, PanopticAccumulator, PanopticConfig,
+        PanopticResult, Pinhole, PqSummary,
     },
     tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Table, TableSet, Tables,
     TypedStage,
@@ -270,6 +270,8 @@ struct MethodSums {
     /// built on it) does: no small-segment rules.
     panopticapi: Option<PanopticAccumulator>,
     depth: Option<DepthAccumulator>,
+    /// The same over LiDAR pixels inside GT regions (not on a class boundary).
+    depth_interior: Option<DepthAccumulator>,
     mc: Option<Consistency>,
 }
 
@@ -383,6 +385,11 @@ impl Group {
                 } else {
                     None
                 },
+                depth_interior: if depth {
+                    Some(DepthAccumulator::new(p.max_depth)?)
+                } else {
+                    None
+                },
                 mc: Some(Consistency::default()),
             })
         };
@@ -406,6 +413,12 @@ impl Group {
         s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
         if let Some(l) = f.lidar {
             s.depth.as_mut().unwrap().add(f.depth, l)?;
+            let interior: Vec<f32> = l
+                .iter()
+                .zip(&f.boundary)
+                .map(|(&d, &b)| if b { 0.0 } else { d })
+                .collect();
+            s.depth_interior.as_mut().unwrap().add(f.depth, &interior)?;
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
@@ -479,6 +492,13 @@ impl Group {
             let d = s.depth.as_ref().map(|d| d.result());
             push(method, "depth_rmse", d.and_then(|d| d.rmse));
             push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
+            let d = s.depth_interior.as_ref().map(|d| d.result());
+            push(method, "depth_rmse_interior", d.and_then(|d| d.rmse));
+            push(
+                method,
+                "depth_delta_1_25_interior",
+                d.and_then(|d| d.delta_1_25),
+            );
             ciou(method, &s.confusion);
         }
     }
@@ -496,6 +516,8 @@ struct FrameMaps<'a> {
     fp_inst: Vec<u16>,
     pseudo: Option<&'a [u8]>,
     lidar: Option<&'a [f32]>,
+    /// Per pixel: on a GT class boundary ([`class_boundary`]).
+    boundary: Vec<bool>,
 }
 
 /// The accumulators over all evaluated images and per camera model, and what the per-frame
@@ -508,11 +530,112 @@ struct Evaluation {
     /// Label maps per method per evaluated image, kept for multi-view consistency.
     labels_of: BTreeMap<(&'static str, u32, u8), Vec<u8>>,
     gt: GtRows,
+    /// Where the rendered depth's error comes from (ours; LiDAR pixels).
+    depth_bins: DepthBins<BinKey>,
+}
+
+/// A bin of the depth breakdown: (group order, bin order, group, bin).
+type BinKey = (u8, u16, &'static str, String);
+
+/// Distance bands of the depth breakdown (LiDAR depth, metres; the last one ends at
+/// `max_depth`).
+const DEPTH_BANDS: [f64; 4] = [0.0, 10.0, 20.0, 40.0];
+
+/// Per pixel of a `width`-wide GT label map: whether a different class is among its 8
+/// neighbours (a class boundary, where LiDAR and camera, or foreground and background, meet).
+fn class_boundary(gsem: &[u8], width: usize) -> Vec<bool> {
+    let h = gsem.len() / width.max(1);
+    (0..gsem.len())
+        .map(|i| {
+            let (x, y) = ((i % width) as i64, (i / width) as i64);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    let (nx, ny) = (x + dx, y + dy);
+                    nx >= 0
+                        && ny >= 0
+                        && (nx as usize) < width
+                        && (ny as usize) < h
+                        && gsem[ny as usize * width + nx as usize] != gsem[i]
+                })
+            })
+        })
+        .collect()
+}
+
+/// The bins of LiDAR pixel `i` of image `c`: all pixels; its distance band; its GT class;
+/// whether it lies on a GT class boundary (a different GT class among its 8 neighbours);
+/// whether a depth was rendered (opacity > 0.5); how many classes the fixed field has at the
+/// LiDAR point (the primitives containing it).
+#[allow(clippy::too_many_arguments)]
+fn depth_bin_keys(
+    c: &CameraRow,
+    i: usize,
+    lidar: f32,
+    rendered: f32,
+    gsem: &[u8],
+    boundary: bool,
+    prims: &[Primitive],
+    bvh: &Bvh,
+    inside: &mut Vec<u32>,
+) -> Vec<BinKey> {
+    let w = c.cam.width as usize;
+    let (x, y) = (i % w, i / w);
+    let g = f64::from(lidar);
+    let band = DEPTH_BANDS.iter().rposition(|&lo| g >= lo).unwrap_or(0);
+    let band_name = match DEPTH_BANDS.get(band + 1) {
+        Some(hi) => format!("{:.0}-{:.0} m", DEPTH_BANDS[band], hi),
+        None => format!(">= {:.0} m", DEPTH_BANDS[band]),
+    };
+    let class = gsem[i];
+    let class_name = labels::by_id(class).map_or("?", |l| l.name).to_string();
+    let fixed = match c.cam.ray_and_dir_cam(x as f64 + 0.5, y as f64 + 0.5) {
+        Some((ray, d_cam)) => {
+            bvh.containing(prims, ray.at(g / c.cam.depth_scale(d_cam)), inside);
+            let mut classes: Vec<u8> = inside.iter().map(|&p| prims[p as usize].label).collect();
+            classes.sort_unstable();
+            classes.dedup();
+            match classes.len() {
+                0 => (2, "in no primitive"),
+                1 => (0, "one class"),
+                _ => (1, "several classes (overlapping primitives)"),
+            }
+        }
+        None => (2, "in no primitive"),
+    };
+    vec![
+        (0, 0, "all", "all".to_string()),
+        (1, band as u16, "distance", band_name),
+        (2, u16::from(class), "class", class_name),
+        (
+            3,
+            u16::from(boundary),
+            "boundary",
+            if boundary {
+                "on a class boundary (GT, 8-neighbourhood)"
+            } else {
+                "inside a region"
+            }
+            .to_string(),
+        ),
+        (
+            4,
+            u16::from(rendered <= 0.0 || !rendered.is_finite()),
+            "rendered",
+            if rendered > 0.0 && rendered.is_finite() {
+                "depth rendered"
+            } else {
+                "no depth rendered (opacity <= 0.5: scored as 0 m)"
+            }
+            .to_string(),
+        ),
+        (5, fixed.0, "fixed field", fixed.1.to_string()),
+    ]
 }
 
 impl Evaluation {
     fn new(p: &EvaluateParams, models: &[&'static str]) -> Result<Self> {
         Ok(Self {
+            depth_bins: DepthBins::new(p.max_depth)?,
             all: Group::new(p)?,
             by_model: models
                 .iter()
@@ -565,8 +688,10 @@ impl Evaluation {
             .map(|i| map_u8(&i[&key], "pseudo_labels", "labels"))
             .transpose()?;
         let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
+        let gsem = map_u8(g, "gt_semantic", "labels")?;
         let f = FrameMaps {
-            gsem: map_u8(g, "gt_semantic", "labels")?,
+            boundary: class_boundary(gsem, g.width),
+            gsem,
             ginst: map_u16(gi, "gt_instance", "instances")?,
             ours: map_u8(m, "label_maps", "semantic")?,
             ours_inst: map_u16(m, "label_maps", "instance")?,
@@ -578,6 +703,17 @@ impl Evaluation {
             lidar: src.lidar_depth(key)?,
         };
         self.gt.push(c, g, f.gsem, f.ginst);
+        if let Some(lidar) = f.lidar {
+            check_size(lidar.len(), g, "lidar_depth", "depth")?;
+            let mut inside = Vec::new();
+            for (i, (&l, &d)) in lidar.iter().zip(f.depth).enumerate() {
+                if l > 0.0 && l.is_finite() {
+                    let b = f.boundary[i];
+                    let keys = depth_bin_keys(c, i, l, d, f.gsem, b, prims, bvh, &mut inside);
+                    self.depth_bins.add(&keys, d, l);
+                }
+            }
+        }
         self.all.add(&f)?;
         self.by_model
             .get_mut(camera_model(c))
@@ -670,6 +806,30 @@ impl Evaluation {
         Ok(())
     }
 
+    /// The `depth_breakdown` table.
+    fn depth_table(&self) -> Result<RecordBatch> {
+        let rows = self.depth_bins.results();
+        let f = |get: fn(&BinResult) -> Option<f64>| {
+            Arc::new(Float64Array::from(
+                rows.iter()
+                    .map(|(_, r)| get(r).filter(|v| v.is_finite()))
+                    .collect::<Vec<_>>(),
+            )) as ArrayRef
+        };
+        tables::build(
+            "depth_breakdown",
+            vec![
+                tables::strings(rows.iter().map(|(k, _)| k.2).collect::<Vec<_>>()),
+                tables::strings(rows.iter().map(|(k, _)| k.3.as_str()).collect::<Vec<_>>()),
+                tables::prim::<UInt64Type>(rows.iter().map(|(_, r)| r.pixels).collect::<Vec<_>>()),
+                f(|r| r.rmse),
+                f(|r| r.mean_error),
+                f(|r| r.delta_1_25),
+                f(|r| r.share_sq_error),
+            ],
+        )
+    }
+
     /// The `metrics`, `class_iou` and `camera_metrics` tables.
     fn score_tables(&self) -> Result<(RecordBatch, RecordBatch, RecordBatch)> {
         let mut rows = MetricRows::default();
@@ -730,7 +890,7 @@ impl MetricRows {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -756,7 +916,13 @@ impl TypedStage for Evaluate {
         },
     ];
     const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
-    const OUTPUTS: &'static [&'static str] = &["metrics", "class_iou", "eval_gt", "camera_metrics"];
+    const OUTPUTS: &'static [&'static str] = &[
+        "metrics",
+        "class_iou",
+        "eval_gt",
+        "camera_metrics",
+        "depth_breakdown",
+    ];
 
     fn validate(p: &EvaluateParams) -> Result<()> {
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
@@ -809,6 +975,7 @@ impl TypedStage for Evaluate {
         }
         run.add_consistency(&maps, &eval, p.mc_distance)?;
         let (metrics, class_iou, camera_metrics) = run.score_tables()?;
+        let depth_breakdown = run.depth_table()?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;
         if sequence.is_empty() {
@@ -820,6 +987,7 @@ impl TypedStage for Evaluate {
             ("class_iou".to_string(), class_iou),
             ("eval_gt".to_string(), eval_gt),
             ("camera_metrics".to_string(), camera_metrics),
+            ("depth_breakdown".to_string(), depth_breakdown),
         ]))
     }
 
@@ -834,6 +1002,7 @@ impl TypedStage for Evaluate {
             .collect();
         json["pq_conventions"] = serde_json::Value::Object(conventions);
         json["by_camera_model"] = camera_metrics_json(t.table("camera_metrics")?)?;
+        json["depth_breakdown"] = depth_breakdown_json(t.table("depth_breakdown")?)?;
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
@@ -856,6 +1025,36 @@ impl TypedStage for Evaluate {
         }
         Ok(files)
     }
+}
+
+/// `[{group, bin, pixels, rmse, mean_error, delta_1_25, share_sq_error}]` from the
+/// `depth_breakdown` table.
+pub fn depth_breakdown_json(t: &RecordBatch) -> Result<serde_json::Value> {
+    let table = "depth_breakdown";
+    let group = tables::get_strings(t, table, "group")?;
+    let bin = tables::get_strings(t, table, "bin")?;
+    let pixels = tables::get_prim::<UInt64Type>(t, table, "pixels")?;
+    let mut out = Vec::new();
+    for (i, &px) in pixels.iter().enumerate() {
+        let mut row = serde_json::json!({
+            "group": group.value(i),
+            "bin": bin.value(i),
+            "pixels": px,
+        });
+        for col in ["rmse", "mean_error", "delta_1_25", "share_sq_error"] {
+            let v = t
+                .column_by_name(col)
+                .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
+                .ok_or_else(|| StageError::Input(format!("{table}.{col} is not float64")))?;
+            row[col] = if v.is_null(i) {
+                serde_json::Value::Null
+            } else {
+                serde_json::json!(v.value(i))
+            };
+        }
+        out.push(row);
+    }
+    Ok(serde_json::Value::Array(out))
 }
 
 /// `{camera model: {method: {metric: value}}}` from the `camera_metrics` table.

@@ -13,7 +13,9 @@ use arrow::{
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::scores::METHODS;
-use crate::report::{depth_colors, error_colors, panoptic_colors, png_data_uri, training_svg};
+use crate::report::{
+    depth_colors, depth_error_colors, error_colors, panoptic_colors, png_data_uri, training_svg,
+};
 use crate::stage::{
     InputSlot, Inputs, Progress, Result, StageError, Table, TableSet, Tables, TypedStage,
 };
@@ -270,6 +272,62 @@ impl Page {
         Ok(present)
     }
 
+    /// Where the depth error comes from: the `depth_breakdown` table.
+    fn depth_breakdown(&mut self, t: &RecordBatch) -> Result<()> {
+        if t.num_rows() == 0 {
+            return Ok(());
+        }
+        let table = "depth_breakdown";
+        let group = tables::get_strings(t, table, "group")?;
+        let bin = tables::get_strings(t, table, "bin")?;
+        let pixels = tables::get_prim::<arrow::datatypes::UInt64Type>(t, table, "pixels")?;
+        let cols = [
+            ("RMSE (m)", f64_col(t, table, "rmse")?, 1.0, 2),
+            ("mean error (m)", f64_col(t, table, "mean_error")?, 1.0, 2),
+            ("δ<1.25", f64_col(t, table, "delta_1_25")?, 100.0, 1),
+            (
+                "share of squared error",
+                f64_col(t, table, "share_sq_error")?,
+                100.0,
+                1,
+            ),
+        ];
+        let (md, html) = (&mut self.md, &mut self.html);
+        md.push_str("\n## Depth error breakdown (ours, LiDAR pixels)\n\n| group | bin | pixels |");
+        html.push_str(
+            "<h2>Depth error breakdown</h2><p class=\"cap\">Ours at the LiDAR pixels of the evaluation frames, \
+             by bins; the share column says where the RMSE comes from (it sums to 100 % within a group).</p>\
+             <table><tr><th>group</th><th>bin</th><th>pixels</th>",
+        );
+        for (label, ..) in &cols {
+            let _ = write!(md, " {label} |");
+            let _ = write!(html, "<th>{label}</th>");
+        }
+        md.push_str("\n|---|---|---:|");
+        md.push_str(&"---:|".repeat(cols.len()));
+        md.push('\n');
+        html.push_str("</tr>");
+        for (i, &px) in pixels.iter().enumerate() {
+            let _ = write!(md, "| {} | {} | {px} |", group.value(i), bin.value(i));
+            let _ = write!(
+                html,
+                "<tr><td>{}</td><td>{}</td><td>{}</td>",
+                group.value(i),
+                bin.value(i),
+                px
+            );
+            for (_, col, scale, dec) in &cols {
+                let v = fmt_value((!col.is_null(i)).then(|| col.value(i)), *scale, *dec);
+                let _ = write!(md, " {v} |");
+                let _ = write!(html, "<td>{v}</td>");
+            }
+            md.push('\n');
+            html.push_str("</tr>");
+        }
+        html.push_str("</table>");
+        Ok(())
+    }
+
     /// The scores per camera model, when the evaluation covered fisheye cameras: one row per
     /// (model, method), and cross-view consistency between the models.
     fn camera_models(&mut self, t: &RecordBatch) -> Result<()> {
@@ -370,6 +428,7 @@ impl Page {
         let pseudo = Maps::new(inputs.stored("scene", "pseudo_labels")?)?;
         let maps = Maps::new(inputs.stored("render", "label_maps")?)?;
         let gt = Maps::new(inputs.stored("evaluate", "eval_gt")?)?;
+        let lidar = Maps::new(inputs.stored("scene", "lidar_depth")?)?;
         let has_gt = !gt.index.is_empty();
         let mut keys: Vec<(u32, u8)> = if has_gt {
             gt.index.keys().copied().take(p.max_frames).collect()
@@ -397,7 +456,8 @@ impl Page {
             html.push_str(
                 "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
                  ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
-                 (yellow near, purple far).</p><div class=\"legend\">",
+                 (yellow near, purple far) · depth error at LiDAR points (green within a factor 1.25, yellow to red up to a factor 2, \
+                 magenta no depth rendered).</p><div class=\"legend\">",
             );
         } else {
             html.push_str(
@@ -460,13 +520,16 @@ impl Page {
                     .transpose()?
                     .map(panoptic_colors),
             ));
-            cells.push((
-                "depth",
-                m.as_ref()
-                    .map(|m| m.f32("depth"))
-                    .transpose()?
-                    .map(|d| depth_colors(d, p.depth_range)),
-            ));
+            let depth = m.as_ref().map(|m| m.f32("depth")).transpose()?;
+            cells.push(("depth", depth.map(|d| depth_colors(d, p.depth_range))));
+            if has_gt {
+                let l = lidar.get(*key)?;
+                let l = l.as_ref().map(|l| l.f32("depth")).transpose()?;
+                cells.push((
+                    "depth error",
+                    depth.zip(l).map(|(d, l)| depth_error_colors(d, l)),
+                ));
+            }
             let _ = write!(
                 html,
                 "<tr><td class=\"cap\">frame {}<br>cam {}</td>",
@@ -525,19 +588,25 @@ fn spread<T: Copy>(keys: &[T], n: usize) -> Vec<T> {
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
         InputSlot {
             name: "scene",
-            tables: &["images", "pseudo_labels", "scene_info"],
+            tables: &["images", "pseudo_labels", "scene_info", "lidar_depth"],
             optional: false,
             doc: "the scene (RGB and pseudo labels)",
         },
         InputSlot {
             name: "evaluate",
-            tables: &["metrics", "class_iou", "eval_gt", "camera_metrics"],
+            tables: &[
+                "metrics",
+                "class_iou",
+                "eval_gt",
+                "camera_metrics",
+                "depth_breakdown",
+            ],
             optional: false,
             doc: "metrics and the GT they were computed against",
         },
@@ -579,6 +648,7 @@ impl TypedStage for Report {
             page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
             let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
             page.camera_models(inputs.table("evaluate", "camera_metrics")?)?;
+            page.depth_breakdown(inputs.table("evaluate", "depth_breakdown")?)?;
             present
         } else {
             page.not_evaluated();

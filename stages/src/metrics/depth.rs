@@ -59,20 +59,12 @@ impl DepthAccumulator {
     pub fn add(&mut self, pred: &[f32], lidar: &[f32]) -> Result<(), MetricError> {
         check_len("predicted depth", lidar.len(), pred.len())?;
         for (&d, &g) in pred.iter().zip(lidar) {
-            let g = g as f64;
-            if !(g.is_finite() && g > 0.0 && g < self.max_depth) {
+            let Some((err, within)) = pixel_error(d, g, self.max_depth) else {
                 continue;
-            }
-            let d = if (d as f64).is_finite() {
-                d as f64
-            } else {
-                0.0
             };
             self.pixels += 1;
-            self.sq_err_sum += (d - g) * (d - g);
-            if d > 0.0 && (d / g).max(g / d) < 1.25 {
-                self.within += 1;
-            }
+            self.sq_err_sum += err * err;
+            self.within += u64::from(within);
         }
         Ok(())
     }
@@ -99,6 +91,111 @@ impl DepthAccumulator {
             delta_1_25: (self.pixels > 0).then(|| self.within as f64 / n),
             pixels: self.pixels,
         }
+    }
+}
+
+/// One pixel as the depth metrics score it: `None` where the LiDAR depth `g` is not valid
+/// (`0 < g < max_depth`, finite), else the error `d - g` (a non-finite prediction counts as 0)
+/// and whether `max(d / g, g / d) < 1.25`.
+fn pixel_error(d: f32, g: f32, max_depth: f64) -> Option<(f64, bool)> {
+    let g = g as f64;
+    if !(g.is_finite() && g > 0.0 && g < max_depth) {
+        return None;
+    }
+    let d = if (d as f64).is_finite() {
+        d as f64
+    } else {
+        0.0
+    };
+    Some((d - g, d > 0.0 && (d / g).max(g / d) < 1.25))
+}
+
+/// Depth errors broken down by bins of pixels (distance band, class, ...): each pixel is
+/// scored as [`DepthAccumulator`] scores it and counted in every bin it is given, and each bin
+/// reports its share of the squared error of all the pixels added (which answers "where does
+/// the RMSE come from?").
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthBins<K: Ord> {
+    max_depth: f64,
+    bins: std::collections::BTreeMap<K, BinSums>,
+    total_sq: f64,
+    total_pixels: u64,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct BinSums {
+    pixels: u64,
+    sq: f64,
+    err: f64,
+    within: u64,
+}
+
+/// One bin's depth figures.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BinResult {
+    pub pixels: u64,
+    pub rmse: Option<f64>,
+    /// Mean signed error (prediction - LiDAR): positive = too far.
+    pub mean_error: Option<f64>,
+    pub delta_1_25: Option<f64>,
+    /// The bin's squared error over that of every pixel added.
+    pub share_sq_error: Option<f64>,
+}
+
+impl<K: Ord + Clone> DepthBins<K> {
+    /// Empty bins counting LiDAR depths below `max_depth` metres (finite, > 0).
+    pub fn new(max_depth: f64) -> Result<Self, MetricError> {
+        DepthAccumulator::new(max_depth)?;
+        Ok(Self {
+            max_depth,
+            bins: Default::default(),
+            total_sq: 0.0,
+            total_pixels: 0,
+        })
+    }
+
+    /// Adds one pixel (prediction `d`, LiDAR `g`) to each bin of `keys`; returns whether the
+    /// pixel counted (valid LiDAR).
+    pub fn add(&mut self, keys: &[K], d: f32, g: f32) -> bool {
+        let Some((err, within)) = pixel_error(d, g, self.max_depth) else {
+            return false;
+        };
+        self.total_sq += err * err;
+        self.total_pixels += 1;
+        for k in keys {
+            let b = self.bins.entry(k.clone()).or_default();
+            b.pixels += 1;
+            b.sq += err * err;
+            b.err += err;
+            b.within += u64::from(within);
+        }
+        true
+    }
+
+    /// Every bin that received a pixel, in key order.
+    pub fn results(&self) -> Vec<(K, BinResult)> {
+        self.bins
+            .iter()
+            .map(|(k, b)| {
+                let n = b.pixels as f64;
+                let some = |v: f64| (b.pixels > 0).then_some(v);
+                (
+                    k.clone(),
+                    BinResult {
+                        pixels: b.pixels,
+                        rmse: some((b.sq / n).sqrt()),
+                        mean_error: some(b.err / n),
+                        delta_1_25: some(b.within as f64 / n),
+                        share_sq_error: (self.total_sq > 0.0).then(|| b.sq / self.total_sq),
+                    },
+                )
+            })
+            .collect()
+    }
+
+    /// Pixels added with valid LiDAR.
+    pub fn pixels(&self) -> u64 {
+        self.total_pixels
     }
 }
 
@@ -151,6 +248,35 @@ mod tests {
         assert_eq!(m.rmse, Some(2.0));
         assert_eq!(m.delta_1_25, Some(0.75));
         assert!(a.merge(&DepthAccumulator::new(80.0).unwrap()).is_err());
+    }
+
+    /// Every pixel in bin "all" and in one of two halves: "all" equals the accumulator over
+    /// the same pixels, the halves' pixels and squared errors add up to it, shares sum to 1.
+    #[test]
+    fn bins_agree_with_the_accumulator_and_their_shares_add_up() {
+        let lidar = [10.0, 0.0, 20.0, 50.0, 150.0, 4.0, 30.0, 7.0];
+        let pred = [11.0, 7.0, 30.0, 50.0, 1.0, -1.0, f32::NAN, 7.5];
+        let mut acc = DepthAccumulator::default();
+        acc.add(&pred, &lidar).unwrap();
+        let mut bins = DepthBins::new(100.0).unwrap();
+        for (i, (&d, &g)) in pred.iter().zip(&lidar).enumerate() {
+            let half = if i % 2 == 0 { "even" } else { "odd" };
+            bins.add(&["all", half], d, g);
+        }
+        let r: std::collections::BTreeMap<_, _> = bins.results().into_iter().collect();
+        let m = acc.result();
+        assert_eq!(r["all"].pixels, m.pixels);
+        assert_eq!(bins.pixels(), m.pixels);
+        assert!((r["all"].rmse.unwrap() - m.rmse.unwrap()).abs() < 1e-12);
+        assert_eq!(r["all"].delta_1_25, m.delta_1_25);
+        assert_eq!(r["all"].share_sq_error, Some(1.0));
+        assert_eq!(r["even"].pixels + r["odd"].pixels, m.pixels);
+        let shares = r["even"].share_sq_error.unwrap() + r["odd"].share_sq_error.unwrap();
+        assert!((shares - 1.0).abs() < 1e-12);
+        // Even pixels 0, 2, 6 (4 beyond range): errors 1, 10, -30 -> mean -19 / 3.
+        assert_eq!(r["even"].pixels, 3);
+        assert!((r["even"].mean_error.unwrap() + 19.0 / 3.0).abs() < 1e-12);
+        assert!(DepthBins::<u8>::new(-1.0).is_err());
     }
 
     #[test]

@@ -29,7 +29,7 @@ pub use confusion::{ClassIou, ConfusionMatrix};
 pub use consistency::{
     cross_view_consistency, multiview_consistency, Consistency, LabelledView, Pinhole,
 };
-pub use depth::{DepthAccumulator, DepthMetrics};
+pub use depth::{BinResult, DepthAccumulator, DepthBins, DepthMetrics};
 pub use error::{instance_number, MetricError};
 pub use panoptic::{
     relabel_small_segments, ClassPq, PanopticAccumulator, PanopticConfig, PanopticResult, PqSummary,

@@ -79,3 +79,48 @@ pub fn depth_colors(depth: &[f32], range: f32) -> Vec<u8> {
         })
         .collect()
 }
+
+/// Depth error at LiDAR pixels: green where the rendered depth is within a factor 1.25 of the
+/// LiDAR depth, shading through yellow to red at a factor of 2 or more (too near or too far
+/// alike), magenta where no depth was rendered; black where there is no LiDAR point.
+pub fn depth_error_colors(pred: &[f32], lidar: &[f32]) -> Vec<u8> {
+    pred.iter()
+        .zip(lidar)
+        .flat_map(|(&d, &g)| {
+            if !(g.is_finite() && g > 0.0) {
+                return [0, 0, 0];
+            }
+            if !(d.is_finite() && d > 0.0) {
+                return [220, 0, 220];
+            }
+            let ratio = (d / g).max(g / d);
+            if ratio < 1.25 {
+                return [40, 170, 60];
+            }
+            // 1.25 -> yellow, 2 and beyond -> red.
+            let k = ((ratio.log2() - 1.25f32.log2()) / (1.0 - 1.25f32.log2())).clamp(0.0, 1.0);
+            [230, (220.0 * (1.0 - k)) as u8, 30]
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_error_colours_by_ratio_either_way() {
+        let c = depth_error_colors(
+            &[10.0, 5.0, 10.0, 0.0, 12.0, 20.0, 5.0],
+            &[0.0, 5.5, 40.0, 8.0, 10.0, 10.0, 10.0],
+        );
+        assert_eq!(&c[0..3], &[0, 0, 0], "no LiDAR");
+        assert_eq!(&c[3..6], &[40, 170, 60], "within 1.25");
+        assert_eq!(&c[6..9], &[230, 0, 30], "4x too near: red");
+        assert_eq!(&c[9..12], &[220, 0, 220], "no depth rendered");
+        assert_eq!(&c[12..15], &[40, 170, 60], "1.2x too far");
+        // 2x too far and 2x too near look the same.
+        assert_eq!(&c[15..18], &[230, 0, 30]);
+        assert_eq!(&c[15..18], &c[18..21]);
+    }
+}
