@@ -134,6 +134,20 @@ fn pairs(
             }
         }
         (Number(x), Number(y)) => out.push((path.into(), x.as_f64().unwrap(), y.as_f64().unwrap())),
+        // Rows (the depth breakdown's): keyed by their `group` and `bin`.
+        (serde_json::Value::Array(x), serde_json::Value::Array(y)) => {
+            let keyed = |v: &Vec<serde_json::Value>| -> serde_json::Value {
+                v.iter()
+                    .enumerate()
+                    .map(|(i, r)| match (r["group"].as_str(), r["bin"].as_str()) {
+                        (Some(g), Some(b)) => (format!("{g}/{b}"), r.clone()),
+                        _ => (i.to_string(), r.clone()),
+                    })
+                    .collect::<serde_json::Map<_, _>>()
+                    .into()
+            };
+            pairs(path, &keyed(x), &keyed(y), out);
+        }
         (x, y) => assert_eq!(x, y, "{path}"),
     }
 }
@@ -183,7 +197,21 @@ fn the_exported_synthetic_scene_runs_through_the_pipeline_with_the_same_metrics(
     for (path, x, y) in &all {
         let (method, metric) = path[1..].split_once('.').unwrap();
         let d = (x - y).abs();
-        let tol = tolerance(method, metric);
+        let tol = match method {
+            // Per camera model: the method's own tolerances.
+            "by_camera_model" => {
+                let (_, rest) = metric.split_once('.').unwrap();
+                let (method, metric) = rest.split_once('.').unwrap();
+                tolerance(method, metric)
+            }
+            // Ours' depth per bin: the LiDAR pixels in each bin agree to a pixel or two (a
+            // point on a primitive's face may land either side after the export's 1e-7
+            // rounding); the errors are those of a trained field (the `all` bin is
+            // `depth_rmse`, compared above).
+            "depth_breakdown" if metric.ends_with(".pixels") => Some(2.0),
+            "depth_breakdown" => None,
+            _ => tolerance(method, metric),
+        };
         eprintln!("{path}: synthetic {x:.6} loaded {y:.6} (diff {d:.2e}, tolerance {tol:?})");
         if tol.is_some_and(|t| d > t) {
             failures.push(format!(

@@ -10,17 +10,21 @@
 use burn::tensor::activation::log_softmax;
 use burn::tensor::Tensor;
 
-use crate::model::loss::PROB_EPS;
-
-/// Masked mean of `-log(probs[r, label_r] + PROB_EPS)`: L_fixed2D (with S_hat and the mask of
-/// rays that have a label) and L_learned2D (with S and that mask times u(r)).
+/// Masked mean of `-log(probs[r, label_r] + eps)`: L_fixed2D (with S_hat and the mask of
+/// rays that have a label) and L_learned2D (with S and that mask times u(r)); `eps` is the
+/// training config's `label_eps` ([`crate::model::PROB_EPS`] for the paper's `-log p`).
 ///
 /// # Shapes
 /// `probs`, `label_one_hot`: `[rays, classes]`; `mask`: `[rays]` (0/1).
-pub fn label_nll(probs: Tensor<2>, label_one_hot: Tensor<2>, mask: Tensor<1>) -> Tensor<1> {
+pub fn label_nll(
+    probs: Tensor<2>,
+    label_one_hot: Tensor<2>,
+    mask: Tensor<1>,
+    eps: f32,
+) -> Tensor<1> {
     let rays = probs.dims()[0];
     let p = (probs * label_one_hot).sum_dim(1).reshape([rays]); // [rays]
-    let nll = p.add_scalar(PROB_EPS).log().neg();
+    let nll = p.add_scalar(eps).log().neg();
     let count = mask.clone().sum().clamp_min(1.0);
     (nll * mask).sum() / count
 }
@@ -71,6 +75,7 @@ mod tests {
     use crate::model::burn::volume::{render_depth, render_rgb, render_semantics, render_weights};
     use crate::model::burn::Backend;
     use crate::model::loss::LossTerm;
+    use crate::model::loss::PROB_EPS;
     use burn::tensor::activation::softmax;
     use burn::tensor::{Device, TensorData};
 
@@ -114,7 +119,12 @@ mod tests {
             [R, C],
             |p| {
                 let d = p.device();
-                label_nll(p, t2(&ONE_HOT, [R, C], &d), t1(&[1.0, 1.0, 0.0], &d))
+                label_nll(
+                    p,
+                    t2(&ONE_HOT, [R, C], &d),
+                    t1(&[1.0, 1.0, 0.0], &d),
+                    PROB_EPS,
+                )
             },
             1e-3,
             1e-2,
@@ -131,7 +141,12 @@ mod tests {
                 let d = sig.device();
                 let w = render_weights(sig, t2(&DELTA, [R, S], &d));
                 let s_hat = render_semantics(&w, t3(&FIXED, [R, S, C], &d), C - 1);
-                label_nll(s_hat, t2(&ONE_HOT, [R, C], &d), t1(&[1.0, 1.0, 1.0], &d))
+                label_nll(
+                    s_hat,
+                    t2(&ONE_HOT, [R, C], &d),
+                    t1(&[1.0, 1.0, 1.0], &d),
+                    PROB_EPS,
+                )
             },
             1e-2,
             2e-2,
@@ -148,7 +163,12 @@ mod tests {
             let d = sig.device();
             let w = render_weights(sig, t2(&DELTA, [R, S], &d));
             let s = render_semantics(&w, softmax(l, 2), C - 1);
-            label_nll(s, t2(&ONE_HOT, [R, C], &d), t1(&[1.0, 1.0, 0.0], &d))
+            label_nll(
+                s,
+                t2(&ONE_HOT, [R, C], &d),
+                t1(&[1.0, 1.0, 0.0], &d),
+                PROB_EPS,
+            )
         };
         check(
             "learned_2d/logits",
@@ -267,7 +287,12 @@ mod tests {
     fn impossible_label_costs_minus_log_eps_and_stays_finite() {
         let d = Backend::REFERENCE.train_device();
         let p = t2(&[0.0, 1.0], [1, 2], &d).require_grad();
-        let l = label_nll(p.clone(), t2(&[1.0, 0.0], [1, 2], &d), t1(&[1.0], &d));
+        let l = label_nll(
+            p.clone(),
+            t2(&[1.0, 0.0], [1, 2], &d),
+            t1(&[1.0], &d),
+            PROB_EPS,
+        );
         let g = p
             .grad(&l.backward())
             .unwrap()
@@ -290,6 +315,7 @@ mod tests {
             t2(&[0.5, 0.5], [1, 2], &d),
             t2(&[1.0, 0.0], [1, 2], &d),
             t1(&[0.0], &d),
+            PROB_EPS,
         );
         assert_eq!(scalar(l), 0.0);
         let l = depth_mse(t1(&[3.0], &d), t1(&[0.0], &d), t1(&[0.0], &d));
@@ -353,11 +379,13 @@ mod tests {
                 render_semantics(&w, fixed_t.clone(), c - 1),
                 t2(&one_hot, [r, c], &d),
                 mask.clone(),
+                PROB_EPS,
             ),
             label_nll(
                 render_semantics(&w, softmax(lg.clone(), 2), c - 1),
                 t2(&one_hot, [r, c], &d),
                 mask.clone(),
+                PROB_EPS,
             ),
             point_ce(
                 lg.clone(),

@@ -119,11 +119,13 @@ fn losses(
                     render_semantics(&w, bt.fixed.clone(), sky),
                     bt.label_one_hot.clone(),
                     bt.labelled.clone(),
+                    config.label_eps,
                 ),
                 LossTerm::Learned2d => loss::label_nll(
                     render_semantics(&w, softmax(logits.clone().expect("semantics head"), 2), sky),
                     bt.label_one_hot.clone(),
                     bt.learned_mask.clone(),
+                    config.label_eps,
                 ),
                 LossTerm::Point3d => loss::point_ce(
                     logits.clone().expect("semantics head"),

@@ -12,7 +12,6 @@ use crate::model::batch::{is_one_hot, RayBatch};
 use crate::model::composite::softmax_into;
 use crate::model::config::TrainConfig;
 use crate::model::field::Heads;
-use crate::model::loss::PROB_EPS;
 
 /// Loss weights and normalisers of one step (shared by all partitions).
 #[derive(Debug, Clone, Copy)]
@@ -137,9 +136,9 @@ impl Work {
             state.shat_label = shat;
             state.s_label = sl;
             if label >= 0 {
-                self.sums.terms[0] += -((shat + PROB_EPS).ln()) as f64;
+                self.sums.terms[0] += -((shat + config.label_eps).ln()) as f64;
                 if !config.ray_mask || t.ray_mask[r] != 0.0 {
-                    self.sums.terms[1] += -((sl + PROB_EPS).ln()) as f64;
+                    self.sums.terms[1] += -((sl + config.label_eps).ln()) as f64;
                 }
             }
             for ch in 0..3 {
@@ -222,13 +221,13 @@ impl Work {
             let sky_live = label >= 0 && label as usize == sky && st.remainder_live;
             let sky_term = if sky_live { 1.0 } else { 0.0 };
             let cf = if label >= 0 && w[0] != 0.0 {
-                -w[0] / scale.fixed / (st.shat_label + PROB_EPS)
+                -w[0] / scale.fixed / (st.shat_label + config.label_eps)
             } else {
                 0.0
             };
             let learned = label >= 0 && (!config.ray_mask || t.ray_mask[r] != 0.0);
             let cl = if learned && w[1] != 0.0 {
-                -w[1] / scale.learned / (st.s_label + PROB_EPS)
+                -w[1] / scale.learned / (st.s_label + config.label_eps)
             } else {
                 0.0
             };

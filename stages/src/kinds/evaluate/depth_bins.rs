@@ -1,0 +1,105 @@
+//! The bins of the depth breakdown: which distance band, class, boundary, rendering and fixed
+//! field case a LiDAR pixel belongs to.
+
+use crate::{
+    geometry::{Bvh, CameraRow, Primitive},
+    labels,
+};
+
+/// A bin of the depth breakdown: (group order, bin order, group, bin).
+pub(super) type BinKey = (u8, u16, &'static str, String);
+
+/// Distance bands of the depth breakdown (LiDAR depth, metres; the last one ends at
+/// `max_depth`).
+pub(super) const DEPTH_BANDS: [f64; 4] = [0.0, 10.0, 20.0, 40.0];
+
+/// Per pixel of a `width`-wide GT label map: whether a different class is among its 8
+/// neighbours (a class boundary, where LiDAR and camera, or foreground and background, meet).
+pub(super) fn class_boundary(gsem: &[u8], width: usize) -> Vec<bool> {
+    let h = gsem.len() / width.max(1);
+    (0..gsem.len())
+        .map(|i| {
+            let (x, y) = ((i % width) as i64, (i / width) as i64);
+            (-1..=1).any(|dy| {
+                (-1..=1).any(|dx| {
+                    let (nx, ny) = (x + dx, y + dy);
+                    nx >= 0
+                        && ny >= 0
+                        && (nx as usize) < width
+                        && (ny as usize) < h
+                        && gsem[ny as usize * width + nx as usize] != gsem[i]
+                })
+            })
+        })
+        .collect()
+}
+
+/// The bins of LiDAR pixel `i` of image `c`: all pixels; its distance band; its GT class;
+/// whether it lies on a GT class boundary (a different GT class among its 8 neighbours);
+/// whether a depth was rendered (opacity > 0.5); how many classes the fixed field has at the
+/// LiDAR point (the primitives containing it).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn depth_bin_keys(
+    c: &CameraRow,
+    i: usize,
+    lidar: f32,
+    rendered: f32,
+    gsem: &[u8],
+    boundary: bool,
+    prims: &[Primitive],
+    bvh: &Bvh,
+    inside: &mut Vec<u32>,
+) -> Vec<BinKey> {
+    let w = c.cam.width as usize;
+    let (x, y) = (i % w, i / w);
+    let g = f64::from(lidar);
+    let band = DEPTH_BANDS.iter().rposition(|&lo| g >= lo).unwrap_or(0);
+    let band_name = match DEPTH_BANDS.get(band + 1) {
+        Some(hi) => format!("{:.0}-{:.0} m", DEPTH_BANDS[band], hi),
+        None => format!(">= {:.0} m", DEPTH_BANDS[band]),
+    };
+    let class = gsem[i];
+    let class_name = labels::by_id(class).map_or("?", |l| l.name).to_string();
+    let fixed = match c.cam.ray_and_dir_cam(x as f64 + 0.5, y as f64 + 0.5) {
+        Some((ray, d_cam)) => {
+            bvh.containing(prims, ray.at(g / c.cam.depth_scale(d_cam)), inside);
+            let mut classes: Vec<u8> = inside.iter().map(|&p| prims[p as usize].label).collect();
+            classes.sort_unstable();
+            classes.dedup();
+            match classes.len() {
+                0 => (2, "in no primitive"),
+                1 => (0, "one class"),
+                _ => (1, "several classes (overlapping primitives)"),
+            }
+        }
+        None => (2, "in no primitive"),
+    };
+    vec![
+        (0, 0, "all", "all".to_string()),
+        (1, band as u16, "distance", band_name),
+        (2, u16::from(class), "class", class_name),
+        (
+            3,
+            u16::from(boundary),
+            "boundary",
+            if boundary {
+                "on a class boundary (GT, 8-neighbourhood)"
+            } else {
+                "inside a region"
+            }
+            .to_string(),
+        ),
+        (
+            4,
+            u16::from(rendered <= 0.0 || !rendered.is_finite()),
+            "rendered",
+            if rendered > 0.0 && rendered.is_finite() {
+                "depth rendered"
+            } else {
+                "no depth rendered (opacity <= 0.5: scored as 0 m)"
+            }
+            .to_string(),
+        ),
+        (5, fixed.0, "fixed field", fixed.1.to_string()),
+    ]
+}

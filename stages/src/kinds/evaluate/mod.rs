@@ -1,0 +1,526 @@
+//! The `evaluate` stage kind: semantic, panoptic, multi-view-consistency and depth metrics of
+//! the rendered labels on the evaluation frames, next to the same metrics for the baselines
+//! (the pseudo labels themselves, the class of the first primitive each ray hits, and the
+//! argmax of the fixed-field rendering), all against the scene's ground truth.
+
+use std::{
+    collections::{BTreeMap, HashMap},
+    path::{Path, PathBuf},
+    sync::Arc,
+};
+
+use arrow::{
+    array::{Array, ArrayRef, Float64Array},
+    datatypes::{UInt16Type, UInt32Type, UInt64Type, UInt8Type},
+    record_batch::RecordBatch,
+};
+use rayon::prelude::*;
+
+use crate::metrics::scores::{self, METHODS, SCORES};
+use crate::{
+    geometry::{self, Bvh, CameraRow, Primitive},
+    labels,
+    metrics::{
+        cross_view_consistency, multiview_consistency, BinResult, Consistency, DepthBins,
+        LabelledView, Pinhole,
+    },
+    tables, InputSlot, Inputs, Progress, Result, ScoreSpec, StageError, Table, TableSet, Tables,
+    TypedStage,
+};
+
+mod depth_bins;
+mod images;
+mod json;
+mod params;
+mod sums;
+
+use depth_bins::{class_boundary, depth_bin_keys, BinKey};
+use images::{check_size, index_images, map_f32, map_u16, map_u8, Image};
+pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json};
+pub use params::{EvaluateParams, PANOPTICAPI_SUFFIX, PQ_CONVENTIONS};
+use sums::{ClassRows, FrameMaps, Group, GtRows, MetricRows};
+
+pub struct Evaluate;
+
+/// Label and panoptic maps of "the first primitive each ray hits" (sky where none is hit).
+pub fn first_primitive_maps(
+    cam: &geometry::Camera,
+    prims: &[Primitive],
+    bvh: &Bvh,
+) -> (Vec<u8>, Vec<u16>) {
+    let n = (cam.width * cam.height) as usize;
+    let mut sem = vec![labels::SKY; n];
+    let mut inst = vec![labels::SKY as u16 * labels::INSTANCE_FACTOR as u16; n];
+    sem.par_iter_mut()
+        .zip(inst.par_iter_mut())
+        .enumerate()
+        .for_each(|(i, (s, ins))| {
+            let (x, y) = ((i as u32) % cam.width, (i as u32) / cam.width);
+            let Some(ray) = cam.pixel_ray(x, y) else {
+                *s = labels::UNLABELED;
+                *ins = 0;
+                return;
+            };
+            if let Some(hit) = bvh.first_hit(prims, &ray, 0.0, f64::INFINITY) {
+                let p = &prims[hit.prim as usize];
+                *s = p.label;
+                *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;
+            }
+        });
+    (sem, inst)
+}
+
+fn view<'a>(c: &CameraRow, labels: &'a [u8], depth: &'a [f32]) -> LabelledView<'a> {
+    LabelledView {
+        width: c.cam.width as usize,
+        height: c.cam.height as usize,
+        labels,
+        depth,
+        intrinsics: Pinhole {
+            fx: c.cam.fx,
+            fy: c.cam.fy,
+            cx: c.cam.cx,
+            cy: c.cam.cy,
+        },
+        cam_to_world: geometry::io::affine_to_row_major(&c.cam.cam_to_world),
+    }
+}
+
+/// The per-image tables evaluation reads, indexed by (frame, camera). The ground truth and
+/// LiDAR exist for the evaluation images only and are read whole; pseudo labels and label maps
+/// exist for every image and are read one evaluated image at a time.
+struct Sources<'a> {
+    gt_sem: HashMap<(u32, u8), Image<'a>>,
+    gt_inst: HashMap<(u32, u8), Image<'a>>,
+    lidar: HashMap<(u32, u8), Image<'a>>,
+    pseudo: RowIndex<'a>,
+    maps: RowIndex<'a>,
+}
+
+/// The rows of a per-image table that is read an image at a time.
+struct RowIndex<'a> {
+    table: &'a Table,
+    rows: HashMap<(u32, u8), usize>,
+}
+
+impl<'a> RowIndex<'a> {
+    fn new(table: &'a Table) -> Result<Self> {
+        let keys = table.columns(&["frame", "camera"])?;
+        Ok(Self {
+            rows: tables::frame_camera_index(&keys, table.name())?,
+            table,
+        })
+    }
+
+    /// The row of image `key` (a one-row batch), if the table has one.
+    fn get(&self, key: (u32, u8)) -> Result<Option<RecordBatch>> {
+        self.rows.get(&key).map(|&r| self.table.row(r)).transpose()
+    }
+}
+
+impl<'a> Sources<'a> {
+    fn new(inputs: &Inputs<'a>) -> Result<Self> {
+        let index = |slot: &str, table: &str| index_images(inputs.table(slot, table)?, table);
+        Ok(Self {
+            gt_sem: index("scene", "gt_semantic")?,
+            gt_inst: index("scene", "gt_instance")?,
+            lidar: index("scene", "lidar_depth")?,
+            pseudo: RowIndex::new(inputs.stored("scene", "pseudo_labels")?)?,
+            maps: RowIndex::new(inputs.stored("render", "label_maps")?)?,
+        })
+    }
+
+    fn lidar_depth(&self, key: (u32, u8)) -> Result<Option<&'a [f32]>> {
+        self.lidar
+            .get(&key)
+            .map(|l| map_f32(l, "lidar_depth", "depth"))
+            .transpose()
+    }
+}
+
+/// The camera model of an evaluated image, as the `camera_metrics` table names it.
+fn camera_model(c: &CameraRow) -> &'static str {
+    match c.cam.lens {
+        geometry::Lens::Pinhole => "perspective",
+        geometry::Lens::Mei(_) => "fisheye",
+    }
+}
+
+/// Scores of labels from perspective views carried into fisheye views (cross-view MC).
+const ACROSS_MODELS: &str = "perspective_fisheye";
+
+/// The accumulators over all evaluated images and per camera model, and what the per-frame
+/// pass keeps for later.
+struct Evaluation {
+    all: Group,
+    by_model: BTreeMap<&'static str, Group>,
+    /// Cross-view consistency per method, perspective LiDAR points carried into fisheye views.
+    across: BTreeMap<&'static str, Consistency>,
+    /// Label maps per method per evaluated image, kept for multi-view consistency.
+    labels_of: BTreeMap<(&'static str, u32, u8), Vec<u8>>,
+    gt: GtRows,
+    /// Where the rendered depth's error comes from (ours; LiDAR pixels).
+    depth_bins: DepthBins<BinKey>,
+}
+
+impl Evaluation {
+    fn new(p: &EvaluateParams, models: &[&'static str]) -> Result<Self> {
+        Ok(Self {
+            depth_bins: DepthBins::new(p.max_depth)?,
+            all: Group::new(p)?,
+            by_model: models
+                .iter()
+                .map(|&m| Ok((m, Group::new(p)?)))
+                .collect::<Result<_>>()?,
+            across: BTreeMap::new(),
+            labels_of: BTreeMap::new(),
+            gt: GtRows::default(),
+        })
+    }
+
+    /// Scores every method on the evaluation image `c`.
+    fn add_frame(
+        &mut self,
+        src: &Sources,
+        c: &CameraRow,
+        prims: &[Primitive],
+        bvh: &Bvh,
+    ) -> Result<()> {
+        let missing = |what: &str| {
+            StageError::Input(format!(
+                "no `{what}` row for frame {} camera {}",
+                c.frame, c.camera
+            ))
+        };
+        let key = (c.frame, c.camera);
+        let g = src.gt_sem.get(&key).ok_or_else(|| missing("gt_semantic"))?;
+        let gi = src
+            .gt_inst
+            .get(&key)
+            .ok_or_else(|| missing("gt_instance"))?;
+        let m_row = src.maps.get(key)?.ok_or_else(|| missing("label_maps"))?;
+        let m_index = index_images(&m_row, "label_maps")?;
+        let m = &m_index[&key];
+        if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
+            || (m.width, m.height) != (g.width, g.height)
+        {
+            return Err(StageError::Input(format!(
+                "frame {} camera {}: image sizes differ between cameras, gt_semantic and label_maps",
+                c.frame, c.camera
+            )));
+        }
+        let ps_row = src.pseudo.get(key)?;
+        let ps_index = ps_row
+            .as_ref()
+            .map(|r| index_images(r, "pseudo_labels"))
+            .transpose()?;
+        let pseudo = ps_index
+            .as_ref()
+            .map(|i| map_u8(&i[&key], "pseudo_labels", "labels"))
+            .transpose()?;
+        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
+        let gsem = map_u8(g, "gt_semantic", "labels")?;
+        let f = FrameMaps {
+            boundary: class_boundary(gsem, g.width),
+            gsem,
+            ginst: map_u16(gi, "gt_instance", "instances")?,
+            ours: map_u8(m, "label_maps", "semantic")?,
+            ours_inst: map_u16(m, "label_maps", "instance")?,
+            fixed: map_u8(m, "label_maps", "fixed_semantic")?,
+            depth: map_f32(m, "label_maps", "depth")?,
+            fp_sem,
+            fp_inst,
+            pseudo,
+            lidar: src.lidar_depth(key)?,
+        };
+        self.gt.push(c, g, f.gsem, f.ginst);
+        if let Some(lidar) = f.lidar {
+            check_size(lidar.len(), g, "lidar_depth", "depth")?;
+            let mut inside = Vec::new();
+            for (i, (&l, &d)) in lidar.iter().zip(f.depth).enumerate() {
+                if l > 0.0 && l.is_finite() {
+                    let b = f.boundary[i];
+                    let keys = depth_bin_keys(c, i, l, d, f.gsem, b, prims, bvh, &mut inside);
+                    self.depth_bins.add(&keys, d, l);
+                }
+            }
+        }
+        self.all.add(&f)?;
+        self.by_model
+            .get_mut(camera_model(c))
+            .expect("a group per evaluated camera model")
+            .add(&f)?;
+        for (method, labels) in [
+            ("panoptic_nerf", Some(f.ours)),
+            ("fixed_field", Some(f.fixed)),
+            ("first_primitive", Some(&f.fp_sem[..])),
+            ("pseudo_labels", f.pseudo),
+        ] {
+            if let Some(l) = labels {
+                self.labels_of
+                    .insert((method, c.frame, c.camera), l.to_vec());
+            }
+        }
+        Ok(())
+    }
+
+    /// The label maps `method` gave images `a` and `b`, when it labelled both.
+    fn label_pair(
+        &self,
+        method: &'static str,
+        a: &CameraRow,
+        b: &CameraRow,
+    ) -> Option<(&[u8], &[u8])> {
+        let get = |c: &CameraRow| {
+            self.labels_of
+                .get(&(method, c.frame, c.camera))
+                .map(Vec::as_slice)
+        };
+        Some((get(a)?, get(b)?))
+    }
+
+    /// Multi-view consistency over consecutive evaluation frames of each camera, and across
+    /// camera models: each frame's perspective LiDAR points carried into its fisheye views.
+    fn add_consistency(&mut self, src: &Sources, eval: &[&CameraRow], distance: f64) -> Result<()> {
+        for w in eval.windows(2) {
+            let (a, b) = (w[0], w[1]);
+            if a.camera != b.camera {
+                continue;
+            }
+            let (Some(da), Some(db)) = (
+                src.lidar_depth((a.frame, a.camera))?,
+                src.lidar_depth((b.frame, b.camera))?,
+            ) else {
+                continue;
+            };
+            for &method in METHODS {
+                let Some((ma, mb)) = self.label_pair(method, a, b) else {
+                    continue;
+                };
+                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), distance)?;
+                self.all.add_mc(method, &c);
+                self.by_model
+                    .get_mut(camera_model(a))
+                    .expect("a group per evaluated camera model")
+                    .add_mc(method, &c);
+            }
+        }
+        for a in eval.iter().filter(|c| camera_model(c) == "perspective") {
+            let Some(da) = src.lidar_depth((a.frame, a.camera))? else {
+                continue;
+            };
+            for b in eval
+                .iter()
+                .filter(|b| b.frame == a.frame && camera_model(b) == "fisheye")
+            {
+                for &method in METHODS {
+                    let Some((ma, mb)) = self.label_pair(method, a, b) else {
+                        continue;
+                    };
+                    let size = (b.cam.width as usize, b.cam.height as usize);
+                    let project = |p: [f64; 3]| {
+                        b.cam
+                            .project(geometry::DVec3::from_array(p))
+                            .map(|(u, v, _)| (u, v))
+                    };
+                    let c = cross_view_consistency(
+                        &view(a, ma, da),
+                        mb,
+                        size,
+                        labels::UNLABELED,
+                        project,
+                    )?;
+                    self.across.entry(method).or_default().merge(&c);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The `depth_breakdown` table.
+    fn depth_table(&self) -> Result<RecordBatch> {
+        let rows = self.depth_bins.results();
+        let f = |get: fn(&BinResult) -> Option<f64>| {
+            Arc::new(Float64Array::from(
+                rows.iter()
+                    .map(|(_, r)| get(r).filter(|v| v.is_finite()))
+                    .collect::<Vec<_>>(),
+            )) as ArrayRef
+        };
+        tables::build(
+            "depth_breakdown",
+            vec![
+                tables::strings(rows.iter().map(|(k, _)| k.2).collect::<Vec<_>>()),
+                tables::strings(rows.iter().map(|(k, _)| k.3.as_str()).collect::<Vec<_>>()),
+                tables::prim::<UInt64Type>(rows.iter().map(|(_, r)| r.pixels).collect::<Vec<_>>()),
+                f(|r| r.rmse),
+                f(|r| r.mean_error),
+                f(|r| r.delta_1_25),
+                f(|r| r.share_sq_error),
+            ],
+        )
+    }
+
+    /// The `metrics`, `class_iou` and `camera_metrics` tables.
+    fn score_tables(&self) -> Result<(RecordBatch, RecordBatch, RecordBatch)> {
+        let mut rows = MetricRows::default();
+        let mut ciou = ClassRows::default();
+        self.all
+            .scores(|m, k, v| rows.push(None, m, k, v), |m, c| ciou.push(m, c));
+        let mut by_model = MetricRows::default();
+        for (&model, group) in &self.by_model {
+            group.scores(|m, k, v| by_model.push(Some(model), m, k, v), |_, _| {});
+        }
+        if !self.across.is_empty() {
+            for &method in METHODS {
+                let v = self.across.get(method).and_then(|c| c.value());
+                by_model.push(Some(ACROSS_MODELS), method, "mc", v);
+            }
+        }
+        Ok((
+            rows.table("metrics")?,
+            ciou.table()?,
+            by_model.table("camera_metrics")?,
+        ))
+    }
+}
+
+impl TypedStage for Evaluate {
+    type Params = EvaluateParams;
+    const KIND: &'static str = "evaluate";
+    const VERSION: u32 = 4;
+    const DESCRIPTION: &'static str =
+        "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
+    const INPUTS: &'static [InputSlot] = &[
+        InputSlot {
+            name: "scene",
+            tables: &[
+                "scene_info",
+                "cameras",
+                "primitives",
+                "gt_semantic",
+                "gt_instance",
+                "pseudo_labels",
+                "lidar_depth",
+            ],
+            optional: false,
+            doc: "the scene with its ground truth",
+        },
+        InputSlot {
+            name: "render",
+            tables: &["label_maps"],
+            optional: false,
+            doc: "rendered labels",
+        },
+    ];
+    const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
+    const OUTPUTS: &'static [&'static str] = &[
+        "metrics",
+        "class_iou",
+        "eval_gt",
+        "camera_metrics",
+        "depth_breakdown",
+    ];
+
+    fn validate(p: &EvaluateParams) -> Result<()> {
+        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+            return Err(StageError::Params(
+                "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
+            ));
+        }
+        if p.classes.is_empty() {
+            return Err(StageError::Params("`classes` is empty".into()));
+        }
+        for &c in p.classes.iter().chain(&p.things) {
+            if c == 0 || labels::by_id(c).is_none() {
+                return Err(StageError::Params(format!(
+                    "`classes`: unknown label id {c}"
+                )));
+            }
+        }
+        if let Some(t) = p.things.iter().find(|t| !p.classes.contains(t)) {
+            return Err(StageError::Params(format!(
+                "`things`: {t} is not in `classes`"
+            )));
+        }
+        if !(p.mc_distance > 0.0 && p.max_depth > 0.0) {
+            return Err(StageError::Params(
+                "`mc_distance` and `max_depth` must be positive".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    fn run(&self, p: &EvaluateParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        let cameras = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+        let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+        let bvh = Bvh::build(&prims);
+        let maps = Sources::new(inputs)?;
+        let mut eval: Vec<&CameraRow> = cameras
+            .iter()
+            .filter(|c| c.eval && p.cameras.contains(&c.camera))
+            .collect();
+        eval.sort_by_key(|c| (c.camera, c.frame));
+        // No evaluation image (a sequence without 2D GT, the usual case): the tables say so
+        // (`frames` 0, every score null) and the report and `metrics.json` say why.
+        let mut models: Vec<&'static str> = eval.iter().map(|c| camera_model(c)).collect();
+        models.sort_unstable();
+        models.dedup();
+        let mut run = Evaluation::new(p, &models)?;
+        for (n, c) in eval.iter().enumerate() {
+            progress.update(n as u64, eval.len() as u64, "evaluating");
+            run.add_frame(&maps, c, &prims, &bvh)?;
+        }
+        run.add_consistency(&maps, &eval, p.mc_distance)?;
+        let (metrics, class_iou, camera_metrics) = run.score_tables()?;
+        let depth_breakdown = run.depth_table()?;
+        let info = inputs.table("scene", "scene_info")?;
+        let sequence = tables::get_strings(info, "scene_info", "sequence")?;
+        if sequence.is_empty() {
+            return Err(StageError::Input("table `scene_info` is empty".into()));
+        }
+        let eval_gt = run.gt.table(sequence.value(0))?;
+        Ok(Tables::from([
+            ("metrics".to_string(), metrics),
+            ("class_iou".to_string(), class_iou),
+            ("eval_gt".to_string(), eval_gt),
+            ("camera_metrics".to_string(), camera_metrics),
+            ("depth_breakdown".to_string(), depth_breakdown),
+        ]))
+    }
+
+    fn export(&self, _: &EvaluateParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {
+        let mut json = metrics_json(&t.whole_tables()?)?;
+        if t.table("eval_gt")?.num_rows() == 0 {
+            json["not_evaluated"] = serde_json::json!(scores::NOT_EVALUATED);
+        }
+        let conventions: serde_json::Map<String, serde_json::Value> = PQ_CONVENTIONS
+            .iter()
+            .map(|(k, v)| (k.to_string(), serde_json::json!(v)))
+            .collect();
+        json["pq_conventions"] = serde_json::Value::Object(conventions);
+        json["by_camera_model"] = camera_metrics_json(t.table("camera_metrics")?)?;
+        json["depth_breakdown"] = depth_breakdown_json(t.table("depth_breakdown")?)?;
+        let path = dir.join("metrics.json");
+        std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
+            .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;
+        let mut files = vec![path];
+        let gt = t.table("eval_gt")?;
+        let seq = tables::get_strings(gt, "eval_gt", "sequence")?;
+        let frames = tables::get_prim::<UInt32Type>(gt, "eval_gt", "frame")?;
+        let cams = tables::get_prim::<UInt8Type>(gt, "eval_gt", "camera")?;
+        let w = tables::get_prim::<UInt32Type>(gt, "eval_gt", "width")?;
+        let h = tables::get_prim::<UInt32Type>(gt, "eval_gt", "height")?;
+        let sem = tables::get_list::<UInt8Type>(gt, "eval_gt", "semantic")?;
+        let inst = tables::get_list::<UInt16Type>(gt, "eval_gt", "instance")?;
+        for r in 0..gt.num_rows() {
+            let name = crate::pngio::label_file_name(seq.value(r), frames[r], cams[r]);
+            let s = dir.join("gt/semantic").join(&name);
+            crate::pngio::write_gray8(&s, w[r], h[r], sem.row(r))?;
+            let i = dir.join("gt/instance").join(&name);
+            crate::pngio::write_gray16(&i, w[r], h[r], inst.row(r))?;
+            files.extend([s, i]);
+        }
+        Ok(files)
+    }
+}
