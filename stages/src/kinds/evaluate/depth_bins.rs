@@ -7,11 +7,16 @@ use crate::{
 };
 
 /// A bin of the depth breakdown: (group order, bin order, group, bin).
-pub(super) type BinKey = (u8, u16, &'static str, String);
+pub(super) type BinKey = (u8, u16, &'static str, &'static str);
 
-/// Distance bands of the depth breakdown (LiDAR depth, metres; the last one ends at
-/// `max_depth`).
-pub(super) const DEPTH_BANDS: [f64; 4] = [0.0, 10.0, 20.0, 40.0];
+/// Distance bands of the depth breakdown: (lower bound of the LiDAR depth in metres, name);
+/// the last one ends at `max_depth`.
+pub(super) const DEPTH_BANDS: [(f64, &str); 4] = [
+    (0.0, "0-10 m"),
+    (10.0, "10-20 m"),
+    (20.0, "20-40 m"),
+    (40.0, ">= 40 m"),
+];
 
 /// Per pixel of a `width`-wide GT label map: whether a different class is among its 8
 /// neighbours (a class boundary, where LiDAR and camera, or foreground and background, meet).
@@ -49,34 +54,32 @@ pub(super) fn depth_bin_keys(
     prims: &[Primitive],
     bvh: &Bvh,
     inside: &mut Vec<u32>,
-) -> Vec<BinKey> {
+) -> [BinKey; 6] {
     let w = c.cam.width as usize;
     let (x, y) = (i % w, i / w);
     let g = f64::from(lidar);
-    let band = DEPTH_BANDS.iter().rposition(|&lo| g >= lo).unwrap_or(0);
-    let band_name = match DEPTH_BANDS.get(band + 1) {
-        Some(hi) => format!("{:.0}-{:.0} m", DEPTH_BANDS[band], hi),
-        None => format!(">= {:.0} m", DEPTH_BANDS[band]),
-    };
+    let band = DEPTH_BANDS
+        .iter()
+        .rposition(|&(lo, _)| g >= lo)
+        .unwrap_or(0);
     let class = gsem[i];
-    let class_name = labels::by_id(class).map_or("?", |l| l.name).to_string();
+    let class_name = labels::by_id(class).map_or("?", |l| l.name);
     let fixed = match c.cam.ray_and_dir_cam(x as f64 + 0.5, y as f64 + 0.5) {
         Some((ray, d_cam)) => {
             bvh.containing(prims, ray.at(g / c.cam.depth_scale(d_cam)), inside);
-            let mut classes: Vec<u8> = inside.iter().map(|&p| prims[p as usize].label).collect();
-            classes.sort_unstable();
-            classes.dedup();
-            match classes.len() {
-                0 => (2, "in no primitive"),
-                1 => (0, "one class"),
-                _ => (1, "several classes (overlapping primitives)"),
+            let mut labels_at = inside.iter().map(|&p| prims[p as usize].label);
+            match labels_at.next() {
+                None => (2, "in no primitive"),
+                Some(first) if labels_at.all(|l| l == first) => (0, "one class"),
+                Some(_) => (1, "several classes (overlapping primitives)"),
             }
         }
         None => (2, "in no primitive"),
     };
-    vec![
-        (0, 0, "all", "all".to_string()),
-        (1, band as u16, "distance", band_name),
+    let drawn = rendered > 0.0 && rendered.is_finite();
+    [
+        (0, 0, "all", "all"),
+        (1, band as u16, "distance", DEPTH_BANDS[band].1),
         (2, u16::from(class), "class", class_name),
         (
             3,
@@ -86,20 +89,18 @@ pub(super) fn depth_bin_keys(
                 "on a class boundary (GT, 8-neighbourhood)"
             } else {
                 "inside a region"
-            }
-            .to_string(),
+            },
         ),
         (
             4,
-            u16::from(rendered <= 0.0 || !rendered.is_finite()),
+            u16::from(!drawn),
             "rendered",
-            if rendered > 0.0 && rendered.is_finite() {
+            if drawn {
                 "depth rendered"
             } else {
                 "no depth rendered (opacity <= 0.5: scored as 0 m)"
-            }
-            .to_string(),
+            },
         ),
-        (5, fixed.0, "fixed field", fixed.1.to_string()),
+        (5, fixed.0, "fixed field", fixed.1),
     ]
 }

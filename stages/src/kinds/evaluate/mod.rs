@@ -351,7 +351,7 @@ impl Evaluation {
             "depth_breakdown",
             vec![
                 tables::strings(rows.iter().map(|(k, _)| k.2).collect::<Vec<_>>()),
-                tables::strings(rows.iter().map(|(k, _)| k.3.as_str()).collect::<Vec<_>>()),
+                tables::strings(rows.iter().map(|(k, _)| k.3).collect::<Vec<_>>()),
                 tables::prim::<UInt64Type>(rows.iter().map(|(_, r)| r.pixels).collect::<Vec<_>>()),
                 f(|r| r.rmse),
                 f(|r| r.mean_error),
