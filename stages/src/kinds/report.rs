@@ -356,21 +356,13 @@ impl Page {
             ("frames", "frames", 1.0, 0),
         ];
         let (md, html) = (&mut self.md, &mut self.html);
-        md.push_str(
-            "
-## Per camera model
-
-| cameras | method |",
-        );
+        md.push_str("\n## Per camera model\n\n| cameras | method |");
         html.push_str("<h2>Per camera model</h2><table><tr><th>cameras</th><th>method</th>");
         for (label, ..) in COLS {
             let _ = write!(md, " {label} |");
             let _ = write!(html, "<th>{label}</th>");
         }
-        md.push_str(
-            "
-|---|---|",
-        );
+        md.push_str("\n|---|---|");
         md.push_str(&"---:|".repeat(COLS.len()));
         md.push('\n');
         html.push_str("</tr>");
