@@ -94,6 +94,36 @@ fn metric_map(t: &RecordBatch) -> Result<BTreeMap<String, BTreeMap<String, Optio
     Ok(out)
 }
 
+/// One method's row of a scores table, in Markdown and HTML: the `lead` cells, the method's
+/// name (ours highlighted), then `cols` (label, metric key, scale, decimals) of `vals`.
+fn method_row(
+    md: &mut String,
+    html: &mut String,
+    lead: &[&str],
+    method: &str,
+    vals: &BTreeMap<String, Option<f64>>,
+    cols: &[(&str, &str, f64, usize)],
+) {
+    let ours = if method == "panoptic_nerf" {
+        " class=\"ours\""
+    } else {
+        ""
+    };
+    let _ = write!(html, "<tr{ours}>");
+    md.push('|');
+    for cell in lead.iter().copied().chain([method_label(method)]) {
+        let _ = write!(md, " {cell} |");
+        let _ = write!(html, "<td>{cell}</td>");
+    }
+    for &(_, key, scale, dec) in cols {
+        let v = fmt_value(vals.get(key).copied().flatten(), scale, dec);
+        let _ = write!(md, " {v} |");
+        let _ = write!(html, "<td>{v}</td>");
+    }
+    md.push('\n');
+    html.push_str("</tr>");
+}
+
 fn fmt_value(v: Option<f64>, scale: f64, decimals: usize) -> String {
     v.map_or("–".into(), |v| format!("{:.*}", decimals, v * scale))
 }
@@ -195,25 +225,7 @@ impl Page {
         md.push_str(&format!("## Metrics\n\n{head}\n{sep}\n"));
         for &m in METHODS {
             let Some(vals) = metrics.get(m) else { continue };
-            let mut row = format!("| {} |", method_label(m));
-            let _ = write!(
-                html,
-                "<tr{}><td>{}</td>",
-                if m == "panoptic_nerf" {
-                    " class=\"ours\""
-                } else {
-                    ""
-                },
-                method_label(m)
-            );
-            for &(_, key, scale, dec) in COLUMNS {
-                let v = fmt_value(vals.get(key).copied().flatten(), scale, dec);
-                let _ = write!(row, " {v} |");
-                let _ = write!(html, "<td>{v}</td>");
-            }
-            md.push_str(&row);
-            md.push('\n');
-            html.push_str("</tr>");
+            method_row(md, html, &[], m, vals, COLUMNS);
         }
         html.push_str("</table>");
         let note = "PQ, SQ, RQ, PQ th/st and PQ† follow the Panoptic NeRF paper (predicted \
@@ -376,24 +388,7 @@ impl Page {
                 } else {
                     model
                 };
-                let _ = write!(md, "| {label} | {} |", method_label(m));
-                let _ = write!(
-                    html,
-                    "<tr{}><td>{label}</td><td>{}</td>",
-                    if m == "panoptic_nerf" {
-                        " class=\"ours\""
-                    } else {
-                        ""
-                    },
-                    method_label(m)
-                );
-                for &(_, key, scale, dec) in COLS {
-                    let v = fmt_value(vals.get(key).copied().flatten(), scale, dec);
-                    let _ = write!(md, " {v} |");
-                    let _ = write!(html, "<td>{v}</td>");
-                }
-                md.push('\n');
-                html.push_str("</tr>");
+                method_row(md, html, &[label], m, vals, COLS);
             }
         }
         html.push_str("</table>");
