@@ -4,7 +4,7 @@
 
 mod common;
 
-use std::{fs, path::Path};
+use std::{collections::BTreeMap, fs, path::Path};
 
 use common::{Outcome, Workspace};
 
@@ -84,6 +84,49 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
         "metrics.json says {reported}, the PNGs give {from_files}"
     );
 
+    // Depth against the scene's exact depth (every pixel of the evaluated images with an exact
+    // depth in (0, 100) m, no rendered depth counting as 0 m), and that exact depth against the
+    // LiDAR, recomputed from the cached tables.
+    let eval_keys = frame_camera_rows(&ws, "evaluate", "eval_gt", None);
+    let depth = frame_camera_rows(&ws, "render", "label_maps", Some("depth"));
+    let exact = frame_camera_rows(&ws, "scene", "gt_depth", Some("depth"));
+    let lidar = frame_camera_rows(&ws, "scene", "lidar_depth", Some("depth"));
+    let (mut ours_sq, mut ours_n, mut floor_sq, mut floor_n) = (0f64, 0u64, 0f64, 0u64);
+    for key in eval_keys.keys() {
+        let e = &exact[key];
+        for (&d, &g) in depth[key].iter().zip(e) {
+            if g > 0.0 && g < 100.0 {
+                ours_sq += (d as f64 - g as f64).powi(2);
+                ours_n += 1;
+            }
+        }
+        for (&g, &l) in e.iter().zip(lidar.get(key).into_iter().flatten()) {
+            if l > 0.0 && l < 100.0 {
+                floor_sq += (g as f64 - l as f64).powi(2);
+                floor_n += 1;
+            }
+        }
+    }
+    assert!(ours_n > 0 && floor_n > 0);
+    for (method, metric, expected) in [
+        (
+            "panoptic_nerf",
+            "depth_rmse_exact",
+            (ours_sq / ours_n as f64).sqrt(),
+        ),
+        (
+            "exact_depth",
+            "depth_rmse",
+            (floor_sq / floor_n as f64).sqrt(),
+        ),
+    ] {
+        let got = metrics[method][metric].as_f64().unwrap();
+        assert!(
+            (got - expected).abs() < 1e-6,
+            "{method} {metric}: {got} vs {expected}"
+        );
+    }
+
     // A second run is all cache hits.
     ws.run_ok(&[]);
     assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
@@ -109,6 +152,48 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
         share < ADAPTIVE_DIFFERENCE,
         "{differ} of {pixels} panoptic labels differ"
     );
+}
+
+/// Rows of `stage`'s cached table `table` by (frame, camera): the float32 list column `column`,
+/// or nothing.
+fn frame_camera_rows(
+    ws: &Workspace,
+    stage: &str,
+    table: &str,
+    column: Option<&str>,
+) -> BTreeMap<(u32, u8), Vec<f32>> {
+    use arrow::array::AsArray;
+    use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
+    let path = ws
+        .cache()
+        .join("objects")
+        .join(ws.stage_key(stage))
+        .join(format!("{table}.parquet"));
+    let file = fs::File::open(&path).unwrap();
+    let reader = parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(file)
+        .unwrap()
+        .build()
+        .unwrap();
+    let mut rows = BTreeMap::new();
+    for batch in reader {
+        let b = batch.unwrap();
+        let frame = b
+            .column_by_name("frame")
+            .unwrap()
+            .as_primitive::<UInt32Type>();
+        let camera = b
+            .column_by_name("camera")
+            .unwrap()
+            .as_primitive::<UInt8Type>();
+        for i in 0..b.num_rows() {
+            let values = column.map_or_else(Vec::new, |c| {
+                let list = b.column_by_name(c).unwrap().as_list::<i32>().value(i);
+                list.as_primitive::<Float32Type>().values().to_vec()
+            });
+            rows.insert((frame.value(i), camera.value(i)), values);
+        }
+    }
+    rows
 }
 
 /// Largest share of panoptic labels in which adaptive rendering may differ from rendering every

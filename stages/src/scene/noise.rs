@@ -12,6 +12,9 @@
 //! 4. blotches of wrong labels in over-exposed regions.
 //!
 //! `s = 0` gives the ground truth back; the default `s = 1` is calibrated to about 65-70 mIoU.
+//! A fifth effect is off by default ([`far_region_errors`]): whole distant segments labelled as
+//! a class theirs is confused with, as networks do where far regions lack the detail near ones
+//! have.
 
 use super::rng::{fbm2, hash, unit, value2};
 use crate::labels::{
@@ -140,6 +143,58 @@ pub fn pseudo_labels(inp: &NoiseInput, noise: f64, seed: u64, frame: u32) -> Vec
         }
     }
     out
+}
+
+/// Segments whose mean depth lies beyond this many metres count as far.
+pub const FAR_REGION_M: f32 = 30.0;
+
+/// Effect 5: each far segment (connected pixels of one GT class and instance, mean depth beyond
+/// [`FAR_REGION_M`]) of a class with [`CONFUSIONS`] is, with chance `chance * noise` (clamped
+/// to 1), labelled whole in `labels` as one class it is confused with, where `labels` still
+/// has its GT class. `depth`: the GT z-depth per pixel (0 = sky). The coins depend only on
+/// (seed, frame, segment), so a larger chance keeps the smaller one's errors.
+pub fn far_region_errors(
+    inp: &NoiseInput,
+    depth: &[f32],
+    labels: &mut [u8],
+    chance: f64,
+    noise: f64,
+    seed: u64,
+    frame: u32,
+) {
+    let p = (chance * noise).min(1.0);
+    if p <= 0.0 {
+        return;
+    }
+    let (w, h) = (inp.width, inp.height);
+    let comp = components(inp.labels, inp.instances, w, h);
+    let mut sum = vec![(0f64, 0u32); comp.count];
+    for (&c, &d) in comp.ids.iter().zip(depth) {
+        if d > 0.0 && d.is_finite() {
+            let s = &mut sum[c as usize];
+            *s = (s.0 + d as f64, s.1 + 1);
+        }
+    }
+    let key = hash(&[seed, 0x5015E, frame as u64, 5]);
+    let to: Vec<Option<u8>> = (0..comp.count)
+        .map(|c| {
+            let (total, n) = sum[c];
+            let far = n > 0 && total / n as f64 > FAR_REGION_M as f64;
+            let (_, _, targets) = CONFUSIONS.iter().find(|x| x.0 == comp.labels[c])?;
+            let identity = [key, comp.instances[c] as u64, comp.first[c] as u64 / 7];
+            (far && unit(&identity) < p).then(|| {
+                let pick = unit(&[identity[0] ^ 0xFA2, identity[1], identity[2]]);
+                targets[((pick * targets.len() as f64) as usize).min(targets.len() - 1)]
+            })
+        })
+        .collect();
+    for (i, l) in labels.iter_mut().enumerate() {
+        if let Some(t) = to[comp.ids[i] as usize] {
+            if *l == inp.labels[i] {
+                *l = t;
+            }
+        }
+    }
 }
 
 /// Whether a field value `r` (fbm, roughly bell-shaped on [0, 1)) lies in the top `fraction`
@@ -316,6 +371,50 @@ mod tests {
         // (0.0006 * 0.8 * 10 * 800 = 3.8 px).
         let p5 = pseudo_labels(&inp, 10.0, 1, 0);
         assert!(!p5.contains(&BOX));
+    }
+
+    #[test]
+    fn far_region_errors_relabel_whole_far_segments_only() {
+        // Two buildings of 20x20: instance 1 near (10 m), instance 2 far (60 m); sky above none.
+        let (w, h) = (40, 20);
+        let l = vec![BUILDING; w * h];
+        let inst: Vec<u16> = (0..w * h)
+            .map(|i| BUILDING as u16 * 1000 + 1 + u16::from(i % w >= 20))
+            .collect();
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| if i % w >= 20 { 60.0 } else { 10.0 })
+            .collect();
+        let over = vec![false; w * h];
+        let inp = NoiseInput {
+            width: w,
+            height: h,
+            labels: &l,
+            instances: &inst,
+            overexposed: &over,
+        };
+        let run = |chance: f64| {
+            let mut out = l.clone();
+            far_region_errors(&inp, &depth, &mut out, chance, 1.0, 3, 0);
+            out
+        };
+        assert_eq!(run(0.0), l);
+        let all = run(10.0);
+        for (i, &x) in all.iter().enumerate() {
+            if i % w >= 20 {
+                assert_eq!(
+                    x, WALL,
+                    "far pixel {i}: building is confused with wall only"
+                );
+            } else {
+                assert_eq!(x, BUILDING, "near pixel {i}");
+            }
+        }
+        // Pixels another effect already changed stay as they were.
+        let mut pre = l.clone();
+        pre[30] = SKY;
+        far_region_errors(&inp, &depth, &mut pre, 10.0, 1.0, 3, 0);
+        assert_eq!(pre[30], SKY);
+        assert_eq!(pre[31], WALL);
     }
 
     #[test]

@@ -62,6 +62,10 @@ pub struct SceneParams {
     pub camera_height_m: f64,
     /// Pseudo-label noise level (0 = ground truth; 1 calibrated to about 65-70 mIoU).
     pub noise: f64,
+    /// Chance (at noise 1) that a far segment (mean depth beyond 30 m) is labelled whole as a
+    /// class it is confused with, as networks fail on distant regions
+    /// ([`noise::far_region_errors`]); 0 = off, the default.
+    pub noise_far_regions: f64,
     /// Farthest depth stereo matching reports, metres.
     pub stereo_max_depth_m: f64,
     /// Classes that appear (paper class names); road, terrain and sky are required.
@@ -91,6 +95,7 @@ impl Default for SceneParams {
             baseline_m: 0.6,
             camera_height_m: 1.55,
             noise: 1.0,
+            noise_far_regions: 0.0,
             stereo_max_depth_m: 15.0,
             classes: PAPER_CLASSES
                 .iter()
@@ -256,6 +261,12 @@ impl SceneParams {
         if !(p.noise.is_finite() && (0.0..=10.0).contains(&p.noise)) {
             return bad(format!("`noise` must be in [0, 10], got {}", p.noise));
         }
+        if !(p.noise_far_regions.is_finite() && (0.0..=1.0).contains(&p.noise_far_regions)) {
+            return bad(format!(
+                "`noise_far_regions` must be in [0, 1], got {}",
+                p.noise_far_regions
+            ));
+        }
         if !(p.stereo_max_depth_m.is_finite() && p.stereo_max_depth_m > 0.0) {
             return bad(format!(
                 "`stereo_max_depth_m` must be positive, got {}",
@@ -407,6 +418,15 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
             // The left camera's noise as before; each fisheye camera its own.
             let seed = p.seed ^ ((row.camera as u64) << 40);
             let mut pl = noise::pseudo_labels(&inp, p.noise, seed, row.frame);
+            noise::far_region_errors(
+                &inp,
+                &img.depth,
+                &mut pl,
+                p.noise_far_regions,
+                p.noise,
+                seed,
+                row.frame,
+            );
             for (l, &gt) in pl.iter_mut().zip(&img.labels) {
                 if gt == labels::UNLABELED {
                     *l = labels::UNLABELED; // outside a fisheye's lens

@@ -93,6 +93,8 @@ struct Sources<'a> {
     gt_sem: HashMap<(u32, u8), Image<'a>>,
     gt_inst: HashMap<(u32, u8), Image<'a>>,
     lidar: HashMap<(u32, u8), Image<'a>>,
+    /// The scene's exact depth (synthetic scenes; none from KITTI-360).
+    exact: HashMap<(u32, u8), Image<'a>>,
     pseudo: RowIndex<'a>,
     maps: RowIndex<'a>,
 }
@@ -125,6 +127,7 @@ impl<'a> Sources<'a> {
             gt_sem: index("scene", "gt_semantic")?,
             gt_inst: index("scene", "gt_instance")?,
             lidar: index("scene", "lidar_depth")?,
+            exact: index("scene", "gt_depth")?,
             pseudo: RowIndex::new(inputs.stored("scene", "pseudo_labels")?)?,
             maps: RowIndex::new(inputs.stored("render", "label_maps")?)?,
         })
@@ -232,6 +235,15 @@ impl Evaluation {
             fp_inst,
             pseudo,
             lidar: src.lidar_depth(key)?,
+            exact: src
+                .exact
+                .get(&key)
+                .map(|e| {
+                    let d = map_f32(e, "gt_depth", "depth")?;
+                    check_size(d.len(), g, "gt_depth", "depth")?;
+                    Ok::<_, StageError>(d)
+                })
+                .transpose()?,
         };
         self.gt.push(c, g, f.gsem, f.ginst);
         if let Some(lidar) = f.lidar {
@@ -388,7 +400,7 @@ impl Evaluation {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[

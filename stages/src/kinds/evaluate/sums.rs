@@ -16,8 +16,8 @@ use crate::{
     geometry::CameraRow,
     labels,
     metrics::{
-        ConfusionMatrix, Consistency, DepthAccumulator, PanopticAccumulator, PanopticConfig,
-        PanopticResult, PqSummary,
+        ConfusionMatrix, Consistency, DepthAccumulator, DepthMetrics, PanopticAccumulator,
+        PanopticConfig, PanopticResult, PqSummary,
     },
     tables, Result,
 };
@@ -102,6 +102,9 @@ impl ClassRows {
     }
 }
 
+/// The `metrics` rows of the scene's exact depth scored against the LiDAR (depth metrics only).
+pub(super) const EXACT_DEPTH: &str = "exact_depth";
+
 /// Accumulators of one method.
 pub(super) struct MethodSums {
     pub(super) confusion: ConfusionMatrix,
@@ -112,6 +115,8 @@ pub(super) struct MethodSums {
     pub(super) depth: Option<DepthAccumulator>,
     /// The same over LiDAR pixels inside GT regions (not on a class boundary).
     pub(super) depth_interior: Option<DepthAccumulator>,
+    /// Against the scene's exact depth at every pixel centre (synthetic scenes).
+    pub(super) depth_exact: Option<DepthAccumulator>,
     pub(super) mc: Option<Consistency>,
 }
 
@@ -137,6 +142,9 @@ impl MethodSums {
 /// camera model's).
 pub(super) struct Group {
     pub(super) sums: BTreeMap<&'static str, MethodSums>,
+    /// The scene's exact depth scored against the LiDAR as ours is (whole image, inside
+    /// regions): the floor the LiDAR metric sets on a perfect geometry.
+    pub(super) exact_vs_lidar: [DepthAccumulator; 2],
     pub(super) frames: usize,
     pub(super) pseudo_frames: usize,
 }
@@ -173,6 +181,11 @@ impl Group {
                 } else {
                     None
                 },
+                depth_exact: if depth {
+                    Some(DepthAccumulator::new(p.max_depth)?)
+                } else {
+                    None
+                },
                 mc: Some(Consistency::default()),
             })
         };
@@ -183,6 +196,10 @@ impl Group {
         sums.insert("first_primitive", new_sums(true, false)?);
         Ok(Self {
             sums,
+            exact_vs_lidar: [
+                DepthAccumulator::new(p.max_depth)?,
+                DepthAccumulator::new(p.max_depth)?,
+            ],
             frames: 0,
             pseudo_frames: 0,
         })
@@ -195,13 +212,20 @@ impl Group {
         s.confusion.add(f.gsem, f.ours)?;
         s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
         if let Some(l) = f.lidar {
-            s.depth.as_mut().unwrap().add(f.depth, l)?;
             let interior: Vec<f32> = l
                 .iter()
                 .zip(&f.boundary)
                 .map(|(&d, &b)| if b { 0.0 } else { d })
                 .collect();
+            s.depth.as_mut().unwrap().add(f.depth, l)?;
             s.depth_interior.as_mut().unwrap().add(f.depth, &interior)?;
+            if let Some(exact) = f.exact {
+                self.exact_vs_lidar[0].add(exact, l)?;
+                self.exact_vs_lidar[1].add(exact, &interior)?;
+            }
+        }
+        if let Some(exact) = f.exact {
+            s.depth_exact.as_mut().unwrap().add(f.depth, exact)?;
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
@@ -272,19 +296,40 @@ impl Group {
             }
             push(method, "pq_dagger", pan.as_ref().and_then(|r| r.pq_dagger));
             push(method, "mc", s.mc.and_then(|c| c.value()));
-            let d = s.depth.as_ref().map(|d| d.result());
-            push(method, "depth_rmse", d.and_then(|d| d.rmse));
-            push(method, "depth_delta_1_25", d.and_then(|d| d.delta_1_25));
-            let d = s.depth_interior.as_ref().map(|d| d.result());
-            push(method, "depth_rmse_interior", d.and_then(|d| d.rmse));
-            push(
-                method,
-                "depth_delta_1_25_interior",
-                d.and_then(|d| d.delta_1_25),
-            );
+            for (suffix, acc) in [
+                ("", &s.depth),
+                ("_interior", &s.depth_interior),
+                ("_exact", &s.depth_exact),
+            ] {
+                push_depth(&mut push, method, suffix, acc.as_ref().map(|d| d.result()));
+            }
             ciou(method, &s.confusion);
         }
+        let [whole, interior] = [0, 1].map(|k| self.exact_vs_lidar[k].result());
+        if whole.pixels > 0 {
+            push_depth(&mut push, EXACT_DEPTH, "", Some(whole));
+            push_depth(&mut push, EXACT_DEPTH, "_interior", Some(interior));
+        }
     }
+}
+
+/// `depth_rmse{suffix}` and `depth_delta_1_25{suffix}` of `method`.
+fn push_depth(
+    push: &mut impl FnMut(&str, &str, Option<f64>),
+    method: &str,
+    suffix: &str,
+    d: Option<DepthMetrics>,
+) {
+    push(
+        method,
+        &format!("depth_rmse{suffix}"),
+        d.and_then(|d| d.rmse),
+    );
+    push(
+        method,
+        &format!("depth_delta_1_25{suffix}"),
+        d.and_then(|d| d.delta_1_25),
+    );
 }
 
 /// One evaluated image's maps: GT, each method's labels, LiDAR where the image has it.
@@ -299,6 +344,8 @@ pub(super) struct FrameMaps<'a> {
     pub(super) fp_inst: Vec<u16>,
     pub(super) pseudo: Option<&'a [u8]>,
     pub(super) lidar: Option<&'a [f32]>,
+    /// The scene's exact depth (z-depth as ours', 0 = none), where the scene has one.
+    pub(super) exact: Option<&'a [f32]>,
     /// Per pixel: on a GT class boundary ([`class_boundary`]).
     pub(super) boundary: Vec<bool>,
 }
