@@ -131,6 +131,26 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
     ws.run_ok(&[]);
     assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
 
+    // The median depth: written where the expected depth is (opacity 0.5, up to rays at
+    // exactly 0.5), one sample's distance where the weight is split.
+    ws.run_ok(&["--until", "render", "--set", "render.depth=median"]);
+    let median = frame_camera_rows(&ws, "render", "label_maps", Some("depth"));
+    let (mut both, mut one, mut differ) = (0usize, 0usize, 0usize);
+    for (key, m) in &median {
+        for (&a, &b) in depth[key].iter().zip(m) {
+            match (a > 0.0, b > 0.0) {
+                (true, true) => {
+                    both += 1;
+                    differ += usize::from((a - b).abs() > 1e-3 * a);
+                }
+                (false, false) => {}
+                _ => one += 1,
+            }
+        }
+    }
+    assert!(both > 0 && one * 1000 <= both, "{one} of {both} pixels");
+    assert!(differ > 0, "median and expected depth agree everywhere");
+
     // Adaptive rendering (the default: a coarse grid first, the rest where it disagrees) gives
     // the labels of rendering every pixel, but for details finer than its cells.
     let every = "render.adaptive=false";

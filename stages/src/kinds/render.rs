@@ -16,7 +16,7 @@ use glam::DQuat;
 
 use crate::geometry::{self, Camera, CameraRow, DAffine3, DVec3};
 use crate::intervals::{plan_image, ImagePlan, IntersectParams};
-use crate::model::maps::{lens_mask, render_image, ImageMaps, Renderer, SkyColour};
+use crate::model::maps::{lens_mask, render_image, DepthKind, ImageMaps, Renderer, SkyColour};
 use crate::model::{weights, EngineChoice, Heads};
 use crate::report::panoptic_colors;
 use crate::sampling::{PlannedImage, PrimInfo, SamplingParams};
@@ -54,6 +54,9 @@ pub struct RenderParams {
     /// Spacing of that first grid: a power of two from 1 to 16. On full-size street images 4
     /// renders 2.4x faster than every pixel (2: 2.0x) and 0.1 % of the labels differ.
     pub coarse_stride: u32,
+    /// The depth map: `expected` (sum w t / sum w, default) or `median` (where the accumulated
+    /// weight reaches 0.5); both only where the opacity reaches 0.5.
+    pub depth: DepthKind,
 }
 
 /// Which images [`RenderParams::colour`] renders in colour.
@@ -95,6 +98,7 @@ impl Default for RenderParams {
             colour: Colour::NovelViews,
             adaptive: true,
             coarse_stride: 4,
+            depth: DepthKind::Expected,
         }
     }
 }
@@ -302,6 +306,7 @@ impl TypedStage for Render {
             },
             adaptive: p.adaptive,
             coarse_stride: p.coarse_stride,
+            depth: p.depth,
         };
         let r = renderer(p.colour == Colour::All);
         // One image at a time: its plan is read, it is rendered and its maps are stored before

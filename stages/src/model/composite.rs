@@ -64,6 +64,9 @@ pub struct Composite {
     pub t: f32,
     /// sum of weights (1 - remainder).
     pub opacity: f32,
+    /// Median distance: the `t` of the sample at which the accumulated weight first reaches
+    /// 0.5 (nerfstudio's "median" depth), 0 if it never does (opacity below 0.5).
+    pub t_median: f32,
     /// Index of the argmax class of the learned rendering S, and its probability.
     pub class: usize,
     pub confidence: f32,
@@ -80,6 +83,8 @@ pub struct RaySums {
     /// sum w t and sum w.
     pub wt: f32,
     pub wsum: f32,
+    /// The `t` of the sample where `wsum` first reached 0.5, 0 before.
+    pub t_median: f32,
     /// Log transmittance: -sum sigma delta.
     pub log_t: f32,
     /// The transmittance fell below [`EARLY_STOP_T`]: later samples are not added.
@@ -147,6 +152,9 @@ impl<'p> Compositor<'p> {
             ray.color[k] += w * c;
         }
         ray.wt += w * t;
+        if ray.wsum < 0.5 && ray.wsum + w >= 0.5 {
+            ray.t_median = t;
+        }
         ray.wsum += w;
         let c_n = self.prims.classes.len();
         softmax_fast(logits, &mut self.prob);
@@ -244,6 +252,7 @@ impl<'p> Compositor<'p> {
                 0.0
             },
             opacity: ray.wsum,
+            t_median: ray.t_median,
             class,
             confidence,
             fixed_class,
@@ -384,6 +393,11 @@ mod tests {
             .collect();
         let et = w.iter().zip(&t).map(|(a, b)| a * b).sum::<f32>() / w.iter().sum::<f32>();
         assert!((c.t - et).abs() < 1e-4);
+        // Median: the first sample whose accumulated weight 1 - e^{-0.5 (i + 1)} reaches 0.5.
+        let i = (0..4)
+            .find(|&i| 1.0 - (-0.5 * (i + 1) as f32).exp() >= 0.5)
+            .unwrap();
+        assert_eq!(c.t_median, t[i]);
         assert_eq!(
             set.classes[c.class],
             labels::CAR,
@@ -407,6 +421,7 @@ mod tests {
         );
         assert_eq!(set.classes[c.class], labels::SKY);
         assert_eq!(c.opacity, 0.0);
+        assert_eq!(c.t_median, 0.0, "no median depth below 0.5 opacity");
         assert_eq!(c.thing, None);
         // A huge density in the first sample: the rest does not matter.
         let c = composite_ray(
@@ -422,5 +437,6 @@ mod tests {
         assert_eq!(c.rgb, [1.0, 0.0, 0.0]);
         assert_eq!(set.classes[c.class], labels::ROAD);
         assert_eq!(c.t, 4.5);
+        assert_eq!(c.t_median, 4.5);
     }
 }

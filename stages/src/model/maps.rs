@@ -6,6 +6,7 @@
 //! threshold, so the samples the compositor would skip are never evaluated.
 
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 use super::composite::{Composite, Compositor, RaySums};
 use super::field::{Field, Heads};
@@ -27,6 +28,21 @@ pub struct Renderer<'a> {
     pub adaptive: bool,
     /// Spacing of that first grid (a power of two; 1 renders every pixel).
     pub coarse_stride: u32,
+    /// Which depth a ray's depth map shows.
+    pub depth: DepthKind,
+}
+
+/// The depth of a rendered ray, written only where the opacity reaches 0.5 (else 0: sky).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DepthKind {
+    /// Expected termination distance over the ray's non-sky weight, sum w t / sum w (the
+    /// paper's code renders sum w t; over its opaque pixels the two are nearly equal).
+    #[default]
+    Expected,
+    /// The sample where the accumulated weight reaches 0.5: one surface where the weight is
+    /// split between two, never a depth between them.
+    Median,
 }
 
 /// The rendered maps of one image, row-major.
@@ -274,7 +290,11 @@ fn render_pixels(
             maps.fixed[px] = prims.classes[c.fixed_class];
             let inst = c.thing.map_or(0, |k| prims.things[k].1.min(999));
             maps.instance[px] = (label as u32 * labels::INSTANCE_FACTOR + inst) as u16;
-            maps.depth[px] = if c.opacity > 0.5 { c.t * z_scale } else { 0.0 };
+            maps.depth[px] = match r.depth {
+                DepthKind::Expected if c.opacity > 0.5 => c.t * z_scale,
+                DepthKind::Median => c.t_median * z_scale,
+                DepthKind::Expected => 0.0,
+            };
             maps.confidence[px] = c.confidence;
             let rem = (1.0 - c.opacity).max(0.0);
             for (k, out) in maps.rgb[px * 3..px * 3 + 3].iter_mut().enumerate() {
