@@ -167,25 +167,18 @@ impl Group {
                     None
                 })
             };
+            let depth_acc = || -> Result<Option<DepthAccumulator>> {
+                Ok(depth
+                    .then(|| DepthAccumulator::new(p.max_depth))
+                    .transpose()?)
+            };
             Ok(MethodSums {
                 confusion: ConfusionMatrix::new(&p.classes)?,
                 panoptic: acc(&pan_cfg)?,
                 panopticapi: acc(&api_cfg)?,
-                depth: if depth {
-                    Some(DepthAccumulator::new(p.max_depth)?)
-                } else {
-                    None
-                },
-                depth_interior: if depth {
-                    Some(DepthAccumulator::new(p.max_depth)?)
-                } else {
-                    None
-                },
-                depth_exact: if depth {
-                    Some(DepthAccumulator::new(p.max_depth)?)
-                } else {
-                    None
-                },
+                depth: depth_acc()?,
+                depth_interior: depth_acc()?,
+                depth_exact: depth_acc()?,
                 mc: Some(Consistency::default()),
             })
         };
