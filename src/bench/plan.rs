@@ -377,14 +377,29 @@ fn depends(combos: &[Combo], role: &str, on_variant: bool) -> bool {
 /// The stage declarations of the generated pipeline (each distinct instance once) and the runs
 /// with their instance names.
 fn instances(base: &[BaseStage], roles: &[String], combos: &[Combo]) -> (Mapping, Vec<Run>) {
-    let by_variant: BTreeMap<&String, bool> = roles
+    // A role's name carries the variant (budget) where two runs differing only in it differ
+    // there; and where two runs differing in both differ there while the names would still
+    // meet (a variant with budgets of its own), both.
+    let mut by_variant: BTreeMap<&String, bool> = roles
         .iter()
         .map(|r| (r, depends(combos, r, true)))
         .collect();
-    let by_budget: BTreeMap<&String, bool> = roles
+    let mut by_budget: BTreeMap<&String, bool> = roles
         .iter()
         .map(|r| (r, depends(combos, r, false)))
         .collect();
+    for r in roles {
+        let meet = |a: &Combo, b: &Combo| {
+            a.scene == b.scene
+                && (!by_variant[r] || a.variant == b.variant)
+                && (!by_budget[r] || a.budget == b.budget)
+                && a.identity[r] != b.identity[r]
+        };
+        if combos.iter().any(|a| combos.iter().any(|b| meet(a, b))) {
+            by_variant.insert(r, true);
+            by_budget.insert(r, true);
+        }
+    }
     let mut stages_out = Mapping::new();
     let mut runs = Vec::new();
     for c in combos {
@@ -518,6 +533,24 @@ mod tests {
         let t = &pipe.stages[pipe.index_of("train-a-nod-b10").unwrap()];
         assert_eq!(t.params["train"]["losses"]["depth"], 0.0);
         assert_eq!(t.params["train"]["iterations"], 10);
+    }
+
+    #[test]
+    fn variants_with_budgets_of_their_own_get_stages_of_their_own() {
+        // Same settings, different budgets: the runs differ in both variant and budget.
+        let s = suite("  - {name: x, budgets: [5]}\n  - {name: y, budgets: [10]}\n");
+        let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
+        let pipe = crate::config::parse(Path::new("gen.yaml"), &p.yaml, &[]).unwrap();
+        let iterations: Vec<_> = p
+            .runs
+            .iter()
+            .map(|r| {
+                let t = &pipe.stages[pipe.index_of(&r.instances["train"]).unwrap()];
+                t.params["train"]["iterations"].clone()
+            })
+            .collect();
+        assert_eq!(iterations, [5, 10]);
+        assert_eq!(p.runs[0].instances["scene"], p.runs[1].instances["scene"]);
     }
 
     #[test]
