@@ -5,7 +5,7 @@
 
 /// The smallest `label_eps` of the training config, the paper's `-log p` in effect (the
 /// gradient is at most `1 / PROB_EPS`, and `-log(PROB_EPS)` ~ 13.8 bounds the loss of an
-/// impossible label); the default `label_eps` is 0.1 (see `TrainConfig::label_eps`).
+/// impossible label); the default `label_eps` is 0.3 (see `TrainConfig::label_eps`).
 pub const PROB_EPS: f32 = 1e-6;
 
 /// The loss terms, for names in errors and logs.
