@@ -90,6 +90,25 @@ fn exact_depth_note(metrics: &BTreeMap<String, BTreeMap<String, Option<f64>>>) -
     ))
 }
 
+/// The header cells `labels` of a table's right-aligned columns in both documents, then the
+/// Markdown separator (`lead_sep` for the columns before them) and the end of the HTML row.
+fn numeric_header<'a>(
+    md: &mut String,
+    html: &mut String,
+    labels: impl ExactSizeIterator<Item = &'a str>,
+    lead_sep: &str,
+) {
+    let n = labels.len();
+    for label in labels {
+        let _ = write!(md, " {label} |");
+        let _ = write!(html, "<th>{label}</th>");
+    }
+    md.push_str(&format!("\n{lead_sep}"));
+    md.push_str(&"---:|".repeat(n));
+    md.push('\n');
+    html.push_str("</tr>");
+}
+
 fn method_label(m: &str) -> &str {
     match m {
         "panoptic_nerf" => "Panoptic NeRF (ours)",
@@ -342,14 +361,7 @@ impl Page {
              by bins; the share column says where the RMSE comes from (it sums to 100 % within a group).</p>\
              <table><tr><th>group</th><th>bin</th><th>pixels</th>",
         );
-        for (label, ..) in &cols {
-            let _ = write!(md, " {label} |");
-            let _ = write!(html, "<th>{label}</th>");
-        }
-        md.push_str("\n|---|---|---:|");
-        md.push_str(&"---:|".repeat(cols.len()));
-        md.push('\n');
-        html.push_str("</tr>");
+        numeric_header(md, html, cols.iter().map(|c| c.0), "|---|---|---:|");
         for (i, &px) in pixels.iter().enumerate() {
             let _ = write!(md, "| {} | {} | {px} |", group.value(i), bin.value(i));
             let _ = write!(
@@ -401,14 +413,7 @@ impl Page {
         let (md, html) = (&mut self.md, &mut self.html);
         md.push_str("\n## Per camera model\n\n| cameras | method |");
         html.push_str("<h2>Per camera model</h2><table><tr><th>cameras</th><th>method</th>");
-        for (label, ..) in COLS {
-            let _ = write!(md, " {label} |");
-            let _ = write!(html, "<th>{label}</th>");
-        }
-        md.push_str("\n|---|---|");
-        md.push_str(&"---:|".repeat(COLS.len()));
-        md.push('\n');
-        html.push_str("</tr>");
+        numeric_header(md, html, COLS.iter().map(|c| c.0), "|---|---|");
         for model in ["perspective", "fisheye", "perspective_fisheye"] {
             for &m in METHODS {
                 let Some(vals) = by.get(&(model.to_string(), m.to_string())) else {
