@@ -43,12 +43,24 @@ impl Default for IntersectParams {
     }
 }
 
+/// The sky lies above the horizon: a ray pointing further below it than this (in the world
+/// frame, z up, as KITTI-360's) gets no sky interval. Beyond its last primitive such a ray is
+/// underground or on unannotated ground, and a sky interval there let the photometric loss
+/// explain ground colour by density below the ground, rendered as sky (blotches of sky on the
+/// paving beside the car in the fisheye views). The margin allows for pitch in the poses.
+pub const SKY_MAX_DEPRESSION_DEG: f64 = 1.0;
+
+/// Whether a ray with unit direction `dir` can see the sky (see [`SKY_MAX_DEPRESSION_DEG`]).
+pub fn may_see_sky(dir: glam::DVec3) -> bool {
+    dir.z >= -SKY_MAX_DEPRESSION_DEG.to_radians().sin()
+}
+
 /// The kept hits of one ray (the first `k`) and its sky interval `[t0, t1]`, in f64: the one
 /// rule behind every plan, whether written to the table or traced again during training.
-fn keep<'h>(hits: &'h [Hit], p: &IntersectParams) -> (&'h [Hit], f64, f64) {
+fn keep<'h>(hits: &'h [Hit], ray: &Ray, p: &IntersectParams) -> (&'h [Hit], f64, f64) {
     let kept = &hits[..hits.len().min(p.k as usize)];
     let t_far = kept.iter().fold(0f64, |m, h| m.max(h.t_out));
-    let sky = if !kept.is_empty() && kept.len() < p.k as usize {
+    let sky = if !kept.is_empty() && kept.len() < p.k as usize && may_see_sky(ray.dir) {
         p.sky_interval
     } else {
         0.0
@@ -72,7 +84,7 @@ impl RayPlan {
     /// Traces `ray` through `bvh`, keeping what the `intersect` stage keeps for it.
     pub fn trace(&mut self, prims: &[Primitive], bvh: &Bvh, ray: &Ray, p: &IntersectParams) {
         bvh.intersect_all(prims, ray, 0.0, p.far, &mut self.hits);
-        let (kept, t0, t1) = keep(&self.hits, p);
+        let (kept, t0, t1) = keep(&self.hits, ray, p);
         self.t_in.clear();
         self.t_out.clear();
         self.prim.clear();
@@ -112,9 +124,19 @@ impl ImagePlan {
         self.first_instance.extend(o.first_instance);
     }
 
-    /// Adds one pixel from its sorted hits (all of them within `[0, far]`).
-    fn push_pixel(&mut self, prims: &[Primitive], hits: &[Hit], p: &IntersectParams) {
-        let (kept, t0, t1) = keep(hits, p);
+    /// Adds one pixel from its ray's sorted hits (all of them within `[0, far]`; none for a
+    /// pixel without a ray).
+    fn push_pixel(
+        &mut self,
+        prims: &[Primitive],
+        ray: Option<&Ray>,
+        hits: &[Hit],
+        p: &IntersectParams,
+    ) {
+        let (kept, t0, t1) = match ray {
+            Some(ray) => keep(hits, ray, p),
+            None => (&hits[..0], 0.0, 0.0),
+        };
         self.hits.push(kept.len() as u8);
         for h in kept {
             self.t_in.push(h.t_in as f32);
@@ -203,11 +225,12 @@ pub fn plan_image(prims: &[Primitive], bvh: &Bvh, cam: &Camera, p: &IntersectPar
             let mut row = ImagePlan::default();
             for x in 0..cam.width {
                 // A pixel outside a fisheye's lens crosses nothing.
-                match cam.pixel_ray(x, y) {
-                    Some(ray) => bvh.intersect_all(prims, &ray, 0.0, p.far, hits),
+                let ray = cam.pixel_ray(x, y);
+                match &ray {
+                    Some(ray) => bvh.intersect_all(prims, ray, 0.0, p.far, hits),
                     None => hits.clear(),
                 }
-                row.push_pixel(prims, hits, p);
+                row.push_pixel(prims, ray.as_ref(), hits, p);
             }
             row
         })

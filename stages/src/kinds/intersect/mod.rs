@@ -12,7 +12,7 @@ pub struct Intersect;
 impl TypedStage for Intersect {
     type Params = IntersectParams;
     const KIND: &'static str = "intersect";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "ray-primitive intervals of every pixel (the first k per ray, plus a sky interval)";
     const INPUTS: &'static [InputSlot] = &[InputSlot {

@@ -103,8 +103,11 @@ fn exact_intervals_on_a_tiny_scene() {
         row("t_out")
     );
     assert_eq!(prim.row(0), &[0, 0, 1, 0]);
+    // The sky interval follows the last exit, except on the bottom pixel, which looks 11 degrees
+    // below the horizon: it cannot see the sky, its interval is empty.
     let sky0 = [0.0, 6.0 * e, 0.0, 0.0, 11.0, 0.0, 0.0, 6.0 * e, 0.0];
-    let sky1 = sky0.map(|v| if v == 0.0 { 0.0 } else { v + 50.0 });
+    let mut sky1 = sky0.map(|v| if v == 0.0 { 0.0 } else { v + 50.0 });
+    sky1[7] = sky0[7];
     assert!(close(row("sky_t0"), &sky0), "{:?}", row("sky_t0"));
     assert!(close(row("sky_t1"), &sky1), "{:?}", row("sky_t1"));
     let first = tables::get_list::<UInt8Type>(&t, "ray_intervals", "first_label").unwrap();
@@ -112,6 +115,49 @@ fn exact_intervals_on_a_tiny_scene() {
     assert_eq!(first.row(0)[4], labels::CAR);
     let inst = tables::get_list::<UInt32Type>(&t, "ray_intervals", "first_instance").unwrap();
     assert_eq!(inst.row(0)[4], 3);
+}
+
+#[test]
+fn rays_below_the_horizon_get_no_sky_interval() {
+    use crate::geometry::{Bvh, Ray};
+    use crate::intervals::{may_see_sky, RayPlan, SKY_MAX_DEPRESSION_DEG};
+    // A ground slab 2 m below the ray origin, 100 m long: rays at several depressions.
+    let slab = Primitive::new(
+        Shape::Cuboid,
+        DAffine3::from_scale_rotation_translation(
+            DVec3::new(100.0, 100.0, 1.0),
+            DQuat::IDENTITY,
+            DVec3::new(50.0, 0.0, -2.5),
+        ),
+        labels::ROAD,
+        0,
+    )
+    .unwrap();
+    let prims = vec![slab];
+    let bvh = Bvh::build(&prims);
+    let p = IntersectParams::default();
+    let mut plan = RayPlan::default();
+    let lim = SKY_MAX_DEPRESSION_DEG;
+    for (deg, sees_sky) in [
+        (-10.0, false),
+        (-lim - 0.01, false),
+        (-lim + 0.01, true),
+        (0.0, true),
+    ] {
+        let a = f64::to_radians(deg);
+        let dir = DVec3::new(a.cos(), 0.0, a.sin());
+        assert_eq!(may_see_sky(dir), sees_sky, "{deg} degrees");
+        // From inside the slab (top at z = -2) every ray crosses it.
+        let ray = Ray::new(DVec3::new(0.0, 0.0, -2.1), dir);
+        plan.trace(&prims, &bvh, &ray, &p);
+        assert_eq!(plan.t_in.len(), 1, "{deg} degrees");
+        let len = plan.sky[1] - plan.sky[0];
+        let want = if sees_sky { p.sky_interval as f32 } else { 0.0 };
+        assert!(
+            (len - want).abs() < 1e-3,
+            "{deg} degrees: sky interval {len}"
+        );
+    }
 }
 
 #[test]
