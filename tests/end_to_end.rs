@@ -421,12 +421,16 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
         serde_json::from_slice(&fs::read(ws.dir().join("eval_both/metrics.json")).unwrap())
             .unwrap();
     let by = &m["by_camera_model"];
-    for key in ["miou", "acc", "pq", "pixels", "frames"] {
+    for key in ["miou", "acc", "pq", "pixels", "frames", "class_iou"] {
         assert_eq!(
             by["fisheye"]["panoptic_nerf"][key], fisheye_only[key],
             "{key}: {by}"
         );
     }
+    assert!(
+        by["fisheye"]["panoptic_nerf"]["class_iou"]["road"].is_number(),
+        "{by}"
+    );
     let px = |v: &serde_json::Value| v["pixels"].as_f64().unwrap();
     assert_eq!(
         px(&by["fisheye"]["panoptic_nerf"]) + px(&by["perspective"]["panoptic_nerf"]),
@@ -476,6 +480,7 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     assert_eq!(code, 0, "{out}{err}");
     let html = fs::read_to_string(ws.dir().join("report/report.html")).unwrap();
     assert!(html.contains("Per camera model"));
+    assert!(html.contains("Per-class IoU per camera model") && html.contains("<th>fisheye: "));
     assert!(html.contains("Depth error breakdown") && html.contains("alt=\"depth error\""));
     assert!(html.contains("cam 2</td>") && html.contains("cam 3</td>"));
 }

@@ -289,30 +289,64 @@ impl Page {
 
     /// Per-class IoU: classes x methods. Returns the label ids present, ascending.
     fn class_iou(&mut self, class_t: &RecordBatch) -> Result<Vec<u8>> {
-        let (md, html) = (&mut self.md, &mut self.html);
-        // Per-class IoU: classes x methods.
         let cm = tables::get_strings(class_t, "class_iou", "method")?;
-        let cn = tables::get_strings(class_t, "class_iou", "name")?;
-        let cl = tables::get_prim::<UInt8Type>(class_t, "class_iou", "label")?;
-        let ci = f64_col(class_t, "class_iou", "iou")?;
-        let mut per_class: BTreeMap<(u8, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
-        for (i, &label) in cl.iter().enumerate() {
-            per_class
-                .entry((label, cn.value(i).to_string()))
-                .or_default()
-                .insert(cm.value(i).into(), (!ci.is_null(i)).then(|| ci.value(i)));
+        let (per_class, _) = per_class_iou(class_t, "class_iou", |i| cm.value(i).to_string())?;
+        let columns: Vec<(String, String)> = METHODS
+            .iter()
+            .map(|&m| (m.to_string(), method_label(m).to_string()))
+            .collect();
+        self.class_table("Per-class IoU (%)", &columns, &per_class);
+        let mut present: Vec<u8> = per_class.keys().map(|(id, _)| *id).collect();
+        present.dedup();
+        Ok(present)
+    }
+
+    /// Per-class IoU per camera model, when the evaluation covered fisheye cameras: classes x
+    /// (camera model, method), methods with no score on a model left out.
+    fn camera_class_iou(&mut self, t: &RecordBatch) -> Result<()> {
+        const T: &str = "camera_class_iou";
+        let models = tables::get_strings(t, T, "camera_model")?;
+        let cm = tables::get_strings(t, T, "method")?;
+        let (per_class, scored) =
+            per_class_iou(t, T, |i| format!("{}/{}", models.value(i), cm.value(i)))?;
+        if !scored.iter().any(|k| k.starts_with("fisheye/")) {
+            return Ok(());
         }
-        md.push_str("\n## Per-class IoU (%)\n\n| class |");
-        html.push_str("<h2>Per-class IoU (%)</h2><table><tr><th>class</th>");
-        for &m in METHODS {
-            let _ = write!(md, " {} |", method_label(m));
-            let _ = write!(html, "<th>{}</th>", method_label(m));
+        let columns: Vec<(String, String)> = ["perspective", "fisheye"]
+            .iter()
+            .flat_map(|model| {
+                METHODS.iter().map(move |&m| {
+                    (
+                        format!("{model}/{m}"),
+                        format!("{model}: {}", method_label(m)),
+                    )
+                })
+            })
+            .filter(|(key, _)| scored.contains(key))
+            .collect();
+        self.class_table("Per-class IoU per camera model (%)", &columns, &per_class);
+        Ok(())
+    }
+
+    /// A table of classes (rows) x `columns` (key, header) of IoU in percent.
+    fn class_table(
+        &mut self,
+        title: &str,
+        columns: &[(String, String)],
+        per_class: &BTreeMap<(u8, String), BTreeMap<String, Option<f64>>>,
+    ) {
+        let (md, html) = (&mut self.md, &mut self.html);
+        let _ = write!(md, "\n## {title}\n\n| class |");
+        let _ = write!(html, "<h2>{title}</h2><table><tr><th>class</th>");
+        for (_, header) in columns {
+            let _ = write!(md, " {header} |");
+            let _ = write!(html, "<th>{header}</th>");
         }
         md.push_str("\n|---|");
-        md.push_str(&"---:|".repeat(METHODS.len()));
+        md.push_str(&"---:|".repeat(columns.len()));
         md.push('\n');
         html.push_str("</tr>");
-        for ((id, name), vals) in &per_class {
+        for ((id, name), vals) in per_class {
             let c = labels::color(*id);
             let _ = write!(md, "| {name} |");
             let _ = write!(
@@ -320,8 +354,8 @@ impl Page {
             "<tr><td><i style=\"display:inline-block;width:10px;height:10px;background:rgb({},{},{});margin-right:6px\"></i>{name}</td>",
             c[0], c[1], c[2]
         );
-            for &m in METHODS {
-                let v = fmt_value(vals.get(m).copied().flatten(), 100.0, 1);
+            for (key, _) in columns {
+                let v = fmt_value(vals.get(key).copied().flatten(), 100.0, 1);
                 let _ = write!(md, " {v} |");
                 let _ = write!(html, "<td>{v}</td>");
             }
@@ -329,9 +363,6 @@ impl Page {
             html.push_str("</tr>");
         }
         html.push_str("</table>");
-        let mut present: Vec<u8> = per_class.keys().map(|(id, _)| *id).collect();
-        present.dedup();
-        Ok(present)
     }
 
     /// Where the depth error comes from: the `depth_breakdown` table.
@@ -608,10 +639,40 @@ fn spread<T: Copy>(keys: &[T], n: usize) -> Vec<T> {
         .collect()
 }
 
+/// IoU per (label id, class name) per column key (`key_of(row)`) from a `class_iou`-shaped
+/// table, and the keys with at least one score.
+#[allow(clippy::type_complexity)]
+fn per_class_iou(
+    t: &RecordBatch,
+    table: &str,
+    key_of: impl Fn(usize) -> String,
+) -> Result<(
+    BTreeMap<(u8, String), BTreeMap<String, Option<f64>>>,
+    std::collections::BTreeSet<String>,
+)> {
+    let cn = tables::get_strings(t, table, "name")?;
+    let cl = tables::get_prim::<UInt8Type>(t, table, "label")?;
+    let ci = f64_col(t, table, "iou")?;
+    let mut per_class: BTreeMap<(u8, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
+    let mut scored = std::collections::BTreeSet::new();
+    for (i, &label) in cl.iter().enumerate() {
+        let v = (!ci.is_null(i)).then(|| ci.value(i));
+        let key = key_of(i);
+        if v.is_some() {
+            scored.insert(key.clone());
+        }
+        per_class
+            .entry((label, cn.value(i).to_string()))
+            .or_default()
+            .insert(key, v);
+    }
+    Ok((per_class, scored))
+}
+
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 6;
+    const VERSION: u32 = 7;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
@@ -628,6 +689,7 @@ impl TypedStage for Report {
                 "class_iou",
                 "eval_gt",
                 "camera_metrics",
+                "camera_class_iou",
                 "depth_breakdown",
             ],
             optional: false,
@@ -671,6 +733,7 @@ impl TypedStage for Report {
             page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
             let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
             page.camera_models(inputs.table("evaluate", "camera_metrics")?)?;
+            page.camera_class_iou(inputs.table("evaluate", "camera_class_iou")?)?;
             page.depth_breakdown(inputs.table("evaluate", "depth_breakdown")?)?;
             present
         } else {

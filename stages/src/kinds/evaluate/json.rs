@@ -38,8 +38,9 @@ pub fn depth_breakdown_json(t: &RecordBatch) -> Result<serde_json::Value> {
     Ok(serde_json::Value::Array(out))
 }
 
-/// `{camera model: {method: {metric: value}}}` from the `camera_metrics` table.
-pub fn camera_metrics_json(t: &RecordBatch) -> Result<serde_json::Value> {
+/// `{camera model: {method: {metric: value, ..., "class_iou": {class name: iou}}}}` from the
+/// `camera_metrics` and `camera_class_iou` tables.
+pub fn camera_metrics_json(t: &RecordBatch, classes: &RecordBatch) -> Result<serde_json::Value> {
     let models = tables::get_strings(t, "camera_metrics", "camera_model")?;
     let methods = tables::get_strings(t, "camera_metrics", "method")?;
     let metrics = tables::get_strings(t, "camera_metrics", "metric")?;
@@ -54,18 +55,9 @@ pub fn camera_metrics_json(t: &RecordBatch) -> Result<serde_json::Value> {
         } else {
             serde_json::json!(values.value(i))
         };
-        let model = out
-            .as_object_mut()
-            .expect("an object")
-            .entry(models.value(i))
-            .or_insert_with(|| serde_json::json!({}));
-        let method = model
-            .as_object_mut()
-            .expect("an object")
-            .entry(methods.value(i))
-            .or_insert_with(|| serde_json::json!({}));
-        method[metrics.value(i)] = v;
+        entry_of(entry_of(&mut out, models.value(i)), methods.value(i))[metrics.value(i)] = v;
     }
+    add_class_iou(&mut out, classes, "camera_class_iou")?;
     Ok(out)
 }
 
@@ -94,25 +86,44 @@ pub fn metrics_json(t: &Tables) -> Result<serde_json::Value> {
         };
         entry[metrics.value(i)] = v;
     }
-    let c = get("class_iou")?;
-    let cm = tables::get_strings(c, "class_iou", "method")?;
-    let cn = tables::get_strings(c, "class_iou", "name")?;
+    let mut out = serde_json::Value::Object(out);
+    add_class_iou(&mut out, get("class_iou")?, "class_iou")?;
+    Ok(out)
+}
+
+/// Adds `"class_iou": {class name: iou}` under each method of `out` (under each camera model,
+/// then method, for the `camera_class_iou` table).
+fn add_class_iou(out: &mut serde_json::Value, c: &RecordBatch, table: &str) -> Result<()> {
+    let models = if table == "camera_class_iou" {
+        Some(tables::get_strings(c, table, "camera_model")?)
+    } else {
+        None
+    };
+    let cm = tables::get_strings(c, table, "method")?;
+    let cn = tables::get_strings(c, table, "name")?;
     let ci = c
         .column_by_name("iou")
         .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
-        .ok_or_else(|| StageError::Input("class_iou.iou is not float64".into()))?;
+        .ok_or_else(|| StageError::Input(format!("{table}.iou is not float64")))?;
     for i in 0..c.num_rows() {
-        let entry = out
-            .entry(cm.value(i).to_string())
-            .or_insert_with(|| serde_json::json!({}));
-        if entry.get("class_iou").is_none() {
-            entry["class_iou"] = serde_json::json!({});
+        let mut entry = &mut *out;
+        if let Some(models) = models {
+            entry = entry_of(entry, models.value(i));
         }
-        entry["class_iou"][cn.value(i)] = if ci.is_null(i) {
+        let entry = entry_of(entry_of(entry, cm.value(i)), "class_iou");
+        entry[cn.value(i)] = if ci.is_null(i) {
             serde_json::Value::Null
         } else {
             serde_json::json!(ci.value(i))
         };
     }
-    Ok(serde_json::Value::Object(out))
+    Ok(())
+}
+
+/// `v[key]`, made an empty object first where absent.
+fn entry_of<'v>(v: &'v mut serde_json::Value, key: &str) -> &'v mut serde_json::Value {
+    v.as_object_mut()
+        .expect("an object")
+        .entry(key)
+        .or_insert_with(|| serde_json::json!({}))
 }

@@ -373,15 +373,21 @@ impl Evaluation {
         )
     }
 
-    /// The `metrics`, `class_iou` and `camera_metrics` tables.
-    fn score_tables(&self) -> Result<(RecordBatch, RecordBatch, RecordBatch)> {
+    /// The `metrics`, `class_iou`, `camera_metrics` and `camera_class_iou` tables.
+    fn score_tables(&self) -> Result<[RecordBatch; 4]> {
         let mut rows = MetricRows::default();
         let mut ciou = ClassRows::default();
-        self.all
-            .scores(|m, k, v| rows.push(None, m, k, v), |m, c| ciou.push(m, c));
+        self.all.scores(
+            |m, k, v| rows.push(None, m, k, v),
+            |m, c| ciou.push(None, m, c),
+        );
         let mut by_model = MetricRows::default();
+        let mut model_ciou = ClassRows::default();
         for (&model, group) in &self.by_model {
-            group.scores(|m, k, v| by_model.push(Some(model), m, k, v), |_, _| {});
+            group.scores(
+                |m, k, v| by_model.push(Some(model), m, k, v),
+                |m, c| model_ciou.push(Some(model), m, c),
+            );
         }
         if !self.across.is_empty() {
             for &method in METHODS {
@@ -389,18 +395,19 @@ impl Evaluation {
                 by_model.push(Some(ACROSS_MODELS), method, "mc", v);
             }
         }
-        Ok((
+        Ok([
             rows.table("metrics")?,
-            ciou.table()?,
+            ciou.table("class_iou")?,
             by_model.table("camera_metrics")?,
-        ))
+            model_ciou.table("camera_class_iou")?,
+        ])
     }
 }
 
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -431,6 +438,7 @@ impl TypedStage for Evaluate {
         "class_iou",
         "eval_gt",
         "camera_metrics",
+        "camera_class_iou",
         "depth_breakdown",
     ];
 
@@ -484,7 +492,7 @@ impl TypedStage for Evaluate {
             run.add_frame(&maps, c, &prims, &bvh)?;
         }
         run.add_consistency(&maps, &eval, p.mc_distance)?;
-        let (metrics, class_iou, camera_metrics) = run.score_tables()?;
+        let [metrics, class_iou, camera_metrics, camera_class_iou] = run.score_tables()?;
         let depth_breakdown = run.depth_table()?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;
@@ -497,6 +505,7 @@ impl TypedStage for Evaluate {
             ("class_iou".to_string(), class_iou),
             ("eval_gt".to_string(), eval_gt),
             ("camera_metrics".to_string(), camera_metrics),
+            ("camera_class_iou".to_string(), camera_class_iou),
             ("depth_breakdown".to_string(), depth_breakdown),
         ]))
     }
@@ -511,7 +520,8 @@ impl TypedStage for Evaluate {
             .map(|(k, v)| (k.to_string(), serde_json::json!(v)))
             .collect();
         json["pq_conventions"] = serde_json::Value::Object(conventions);
-        json["by_camera_model"] = camera_metrics_json(t.table("camera_metrics")?)?;
+        json["by_camera_model"] =
+            camera_metrics_json(t.table("camera_metrics")?, t.table("camera_class_iou")?)?;
         json["depth_breakdown"] = depth_breakdown_json(t.table("depth_breakdown")?)?;
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())

@@ -60,9 +60,10 @@ impl GtRows {
     }
 }
 
-/// Columns of the `class_iou` table.
+/// Columns of the `class_iou` table, or of `camera_class_iou` (the same per camera model).
 #[derive(Default)]
 pub(super) struct ClassRows {
+    pub(super) camera_model: Vec<String>,
     pub(super) method: Vec<String>,
     pub(super) label: Vec<u8>,
     pub(super) name: Vec<String>,
@@ -73,8 +74,17 @@ pub(super) struct ClassRows {
 }
 
 impl ClassRows {
-    pub(super) fn push(&mut self, method: &str, confusion: &ConfusionMatrix) {
+    /// Rows of `method`'s classes; `camera_model` is `None` for the `class_iou` table.
+    pub(super) fn push(
+        &mut self,
+        camera_model: Option<&str>,
+        method: &str,
+        confusion: &ConfusionMatrix,
+    ) {
         for row in confusion.table() {
+            if let Some(model) = camera_model {
+                self.camera_model.push(model.to_string());
+            }
             self.method.push(method.to_string());
             self.label.push(row.class);
             self.name
@@ -86,19 +96,22 @@ impl ClassRows {
         }
     }
 
-    pub(super) fn table(self) -> Result<RecordBatch> {
-        tables::build(
-            "class_iou",
-            vec![
-                tables::strings(&self.method),
-                tables::prim::<UInt8Type>(self.label),
-                tables::strings(&self.name),
-                Arc::new(Float64Array::from(self.iou)) as ArrayRef,
-                tables::prim::<UInt64Type>(self.tp),
-                tables::prim::<UInt64Type>(self.fp),
-                tables::prim::<UInt64Type>(self.fn_),
-            ],
-        )
+    /// `class_iou`, or `camera_class_iou` when the rows were pushed with a camera model.
+    pub(super) fn table(self, name: &str) -> Result<RecordBatch> {
+        let mut columns = Vec::with_capacity(8);
+        if name == "camera_class_iou" {
+            columns.push(tables::strings(&self.camera_model));
+        }
+        columns.extend([
+            tables::strings(&self.method),
+            tables::prim::<UInt8Type>(self.label),
+            tables::strings(&self.name),
+            Arc::new(Float64Array::from(self.iou)) as ArrayRef,
+            tables::prim::<UInt64Type>(self.tp),
+            tables::prim::<UInt64Type>(self.fp),
+            tables::prim::<UInt64Type>(self.fn_),
+        ]);
+        tables::build(name, columns)
     }
 }
 
