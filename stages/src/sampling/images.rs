@@ -10,7 +10,7 @@ use arrow::record_batch::RecordBatch;
 
 use super::rays::{pixel_ray_f64, ray_f32, Intervals, PrimInfo, RayTargets, Rays, SceneRay, NONE};
 use crate::geometry::{self, Primitive};
-use crate::intervals::{IntersectParams, RayPlan};
+use crate::intervals::{may_see_sky, IntersectParams, RayPlan};
 use crate::stage::{Inputs, Result, StageError};
 use crate::tables;
 
@@ -117,7 +117,13 @@ impl Rays for ImageRays<'_> {
             )));
         }
         let t = &im.targets;
-        let label = t.labels.map_or(NONE, |l| self.prims.label_class(l[p]));
+        let mut label = t.labels.map_or(NONE, |l| self.prims.label_class(l[p]));
+        // A pseudo label of sky on a ray below the horizon is the 2D network's mistake: no
+        // setting of the fields can honour it (the ray has no sky interval), and chasing it
+        // would make the ray transparent. Both 2D terms skip it.
+        if label != NONE && label as usize == self.prims.sky_class() && !may_see_sky(ray.dir) {
+            label = NONE;
+        }
         let intervals = Intervals {
             t_in: &buf.t_in,
             t_out: &buf.t_out,

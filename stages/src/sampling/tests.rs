@@ -242,3 +242,88 @@ fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
     let e = bad.ray(p as u32, &mut a).unwrap_err().to_string();
     assert!(e.contains("ray_intervals does not match the scene"), "{e}");
 }
+
+/// A pseudo label of sky on a ray below the horizon cannot be honoured (the ray has no sky
+/// interval): training drops it; every other pseudo label is kept as it is.
+#[test]
+fn sky_pseudo_labels_below_the_horizon_are_dropped() {
+    use crate::intervals::may_see_sky;
+    use crate::scene::synthetic::{generate, to_tables, SceneParams};
+    let sp = SceneParams {
+        frames: 2,
+        scale: 0.05,
+        ..SceneParams::default()
+    };
+    let mut scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+    // Pseudo labels all sky, so both sides of the horizon are covered.
+    let pl = scene["pseudo_labels"].clone();
+    let col = pl.schema().index_of("labels").unwrap();
+    let lists =
+        crate::tables::get_list::<arrow::datatypes::UInt8Type>(&pl, "pseudo_labels", "labels")
+            .unwrap();
+    let sky: Vec<Vec<u8>> = (0..pl.num_rows())
+        .map(|r| vec![labels::SKY; lists.row(r).len()])
+        .collect();
+    let mut columns = pl.columns().to_vec();
+    columns[col] = crate::tables::list::<arrow::datatypes::UInt8Type>(sky);
+    scene.insert(
+        "pseudo_labels".into(),
+        arrow::record_batch::RecordBatch::try_new(pl.schema(), columns).unwrap(),
+    );
+    let cams = crate::geometry::cameras_from_table(&scene["cameras"]).unwrap();
+    let prims = crate::geometry::primitives_from_table(&scene["primitives"]).unwrap();
+    let (bvh, ip) = (
+        crate::geometry::Bvh::build(&prims),
+        IntersectParams::default(),
+    );
+    let rows: Vec<_> = cams
+        .iter()
+        .map(|c| {
+            crate::intervals::plan_row(
+                c,
+                crate::intervals::plan_image(&prims, &bvh, &c.cam, &ip),
+                &ip,
+            )
+            .unwrap()
+        })
+        .collect();
+    let plan = arrow::compute::concat_batches(&rows[0].schema(), &rows).unwrap();
+    let mem = crate::MemoryInputs::new([
+        ("scene", scene),
+        (
+            "rays",
+            crate::Tables::from([("ray_intervals".to_string(), plan)]),
+        ),
+    ]);
+    let traced = train_rays(&mem.inputs()).unwrap();
+    let sky = traced.prims.sky_class() as u16;
+    let (mut buf, mut kept, mut dropped) = (RayPlan::default(), 0, 0);
+    for r in 0..traced.len() as u32 {
+        // Only the left images have pseudo labels.
+        if traced.locate(r).0.targets.labels.is_none() {
+            continue;
+        }
+        let ray = traced.ray(r, &mut buf).unwrap();
+        let d = ray.dir.map(f64::from);
+        let dir = glam::DVec3::from(d).normalize();
+        // f32 directions: skip the rays within rounding of the limit.
+        if (dir.z + crate::intervals::SKY_MAX_DEPRESSION_DEG.to_radians().sin()).abs() < 1e-5 {
+            continue;
+        }
+        if may_see_sky(dir) {
+            assert_eq!(
+                ray.targets.label, sky,
+                "ray {r} looks up: keeps its sky label"
+            );
+            kept += 1;
+        } else {
+            assert_eq!(ray.targets.label, NONE, "ray {r} looks down: no sky label");
+            assert!(!ray.targets.u_mask);
+            dropped += 1;
+        }
+    }
+    assert!(
+        kept > 100 && dropped > 100,
+        "{kept} kept, {dropped} dropped"
+    );
+}
