@@ -179,19 +179,22 @@ fn batches_are_deterministic_for_a_seed() {
     assert_eq!(a.positions.len(), p.per_ray() * 3);
 }
 
-/// Training traces each ray again when it is drawn; rendering reads the plan the `intersect`
-/// stage stored. Both must give every ray the same origin, direction and intervals.
-#[test]
-fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
-    use crate::geometry::{cameras_from_table, primitives_from_table, Bvh};
-    use crate::intervals::{plan_image, plan_row};
+/// A 2-frame synthetic street at 1/20 scale.
+fn small_street() -> crate::Tables {
     use crate::scene::synthetic::{generate, to_tables, SceneParams};
     let sp = SceneParams {
         frames: 2,
         scale: 0.05,
         ..SceneParams::default()
     };
-    let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+    to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap()
+}
+
+/// `scene` with the plan the `intersect` stage would store for it (default parameters), as
+/// training's inputs; also the plan and the number of cameras.
+fn planned(scene: crate::Tables) -> (crate::MemoryInputs, arrow::record_batch::RecordBatch, usize) {
+    use crate::geometry::{cameras_from_table, primitives_from_table, Bvh};
+    use crate::intervals::{plan_image, plan_row};
     let cams = cameras_from_table(&scene["cameras"]).unwrap();
     let prims = primitives_from_table(&scene["primitives"]).unwrap();
     let (bvh, ip) = (Bvh::build(&prims), IntersectParams::default());
@@ -201,14 +204,25 @@ fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
         .collect();
     let plan = arrow::compute::concat_batches(&rows[0].schema(), &rows).unwrap();
     let mem = crate::MemoryInputs::new([
-        ("scene", scene.clone()),
+        ("scene", scene),
         (
             "rays",
             crate::Tables::from([("ray_intervals".to_string(), plan.clone())]),
         ),
     ]);
+    (mem, plan, cams.len())
+}
+
+/// Training traces each ray again when it is drawn; rendering reads the plan the `intersect`
+/// stage stored. Both must give every ray the same origin, direction and intervals.
+#[test]
+fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
+    use crate::geometry::primitives_from_table;
+    let scene = small_street();
+    let prims = primitives_from_table(&scene["primitives"]).unwrap();
+    let (mem, plan, cams) = planned(scene);
     let traced = train_rays(&mem.inputs()).unwrap();
-    assert_eq!(traced.images.len(), cams.len());
+    assert_eq!(traced.images.len(), cams);
     let (mut a, mut b) = (RayPlan::default(), RayPlan::default());
     let mut crossing = 0;
     for (r, im) in traced.images.iter().enumerate() {
@@ -248,13 +262,7 @@ fn training_traces_exactly_the_plan_the_intersect_stage_stores() {
 #[test]
 fn sky_pseudo_labels_below_the_horizon_are_dropped() {
     use crate::intervals::may_see_sky;
-    use crate::scene::synthetic::{generate, to_tables, SceneParams};
-    let sp = SceneParams {
-        frames: 2,
-        scale: 0.05,
-        ..SceneParams::default()
-    };
-    let mut scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+    let mut scene = small_street();
     // Pseudo labels all sky, so both sides of the horizon are covered.
     let pl = scene["pseudo_labels"].clone();
     let col = pl.schema().index_of("labels").unwrap();
@@ -270,31 +278,7 @@ fn sky_pseudo_labels_below_the_horizon_are_dropped() {
         "pseudo_labels".into(),
         arrow::record_batch::RecordBatch::try_new(pl.schema(), columns).unwrap(),
     );
-    let cams = crate::geometry::cameras_from_table(&scene["cameras"]).unwrap();
-    let prims = crate::geometry::primitives_from_table(&scene["primitives"]).unwrap();
-    let (bvh, ip) = (
-        crate::geometry::Bvh::build(&prims),
-        IntersectParams::default(),
-    );
-    let rows: Vec<_> = cams
-        .iter()
-        .map(|c| {
-            crate::intervals::plan_row(
-                c,
-                crate::intervals::plan_image(&prims, &bvh, &c.cam, &ip),
-                &ip,
-            )
-            .unwrap()
-        })
-        .collect();
-    let plan = arrow::compute::concat_batches(&rows[0].schema(), &rows).unwrap();
-    let mem = crate::MemoryInputs::new([
-        ("scene", scene),
-        (
-            "rays",
-            crate::Tables::from([("ray_intervals".to_string(), plan)]),
-        ),
-    ]);
+    let (mem, _, _) = planned(scene);
     let traced = train_rays(&mem.inputs()).unwrap();
     let sky = traced.prims.sky_class() as u16;
     let (mut buf, mut kept, mut dropped) = (RayPlan::default(), 0, 0);
