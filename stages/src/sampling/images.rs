@@ -12,7 +12,7 @@ use super::rays::{pixel_ray_f64, ray_f32, Intervals, PrimInfo, RayTargets, Rays,
 use crate::geometry::{self, Primitive};
 use crate::intervals::{may_see_sky, IntersectParams, RayPlan};
 use crate::stage::{Inputs, Result, StageError};
-use crate::tables;
+use crate::{labels, tables};
 
 /// One image of the scene as training sees it: its camera and per-pixel targets.
 pub struct TrainImage<'a> {
@@ -121,7 +121,10 @@ impl Rays for ImageRays<'_> {
         // A pseudo label of sky on a ray below the horizon is the 2D network's mistake: no
         // setting of the fields can honour it (the ray has no sky interval), and chasing it
         // would make the ray transparent. Both 2D terms skip it.
-        if label != NONE && label as usize == self.prims.sky_class() && !may_see_sky(ray.dir) {
+        if label != NONE
+            && self.prims.classes[label as usize] == labels::SKY
+            && !may_see_sky(ray.dir)
+        {
             label = NONE;
         }
         let intervals = Intervals {

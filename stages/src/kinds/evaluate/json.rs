@@ -27,11 +27,7 @@ pub fn depth_breakdown_json(t: &RecordBatch) -> Result<serde_json::Value> {
                 .column_by_name(col)
                 .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
                 .ok_or_else(|| StageError::Input(format!("{table}.{col} is not float64")))?;
-            row[col] = if v.is_null(i) {
-                serde_json::Value::Null
-            } else {
-                serde_json::json!(v.value(i))
-            };
+            row[col] = value_at(v, i);
         }
         out.push(row);
     }
@@ -50,12 +46,8 @@ pub fn camera_metrics_json(t: &RecordBatch, classes: &RecordBatch) -> Result<ser
         .ok_or_else(|| StageError::Input("camera_metrics.value is not float64".into()))?;
     let mut out = serde_json::json!({});
     for i in 0..t.num_rows() {
-        let v = if values.is_null(i) {
-            serde_json::Value::Null
-        } else {
-            serde_json::json!(values.value(i))
-        };
-        entry_of(entry_of(&mut out, models.value(i)), methods.value(i))[metrics.value(i)] = v;
+        entry_of(entry_of(&mut out, models.value(i)), methods.value(i))[metrics.value(i)] =
+            value_at(values, i);
     }
     add_class_iou(&mut out, classes, "camera_class_iou")?;
     Ok(out)
@@ -74,19 +66,10 @@ pub fn metrics_json(t: &Tables) -> Result<serde_json::Value> {
         .column_by_name("value")
         .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
         .ok_or_else(|| StageError::Input("metrics.value is not float64".into()))?;
-    let mut out = serde_json::Map::new();
+    let mut out = serde_json::json!({});
     for i in 0..m.num_rows() {
-        let entry = out
-            .entry(methods.value(i).to_string())
-            .or_insert_with(|| serde_json::json!({}));
-        let v = if values.is_null(i) {
-            serde_json::Value::Null
-        } else {
-            serde_json::json!(values.value(i))
-        };
-        entry[metrics.value(i)] = v;
+        entry_of(&mut out, methods.value(i))[metrics.value(i)] = value_at(values, i);
     }
-    let mut out = serde_json::Value::Object(out);
     add_class_iou(&mut out, get("class_iou")?, "class_iou")?;
     Ok(out)
 }
@@ -111,13 +94,18 @@ fn add_class_iou(out: &mut serde_json::Value, c: &RecordBatch, table: &str) -> R
             entry = entry_of(entry, models.value(i));
         }
         let entry = entry_of(entry_of(entry, cm.value(i)), "class_iou");
-        entry[cn.value(i)] = if ci.is_null(i) {
-            serde_json::Value::Null
-        } else {
-            serde_json::json!(ci.value(i))
-        };
+        entry[cn.value(i)] = value_at(ci, i);
     }
     Ok(())
+}
+
+/// Row `i` of `col` as JSON: null where the column is null.
+fn value_at(col: &Float64Array, i: usize) -> serde_json::Value {
+    if col.is_null(i) {
+        serde_json::Value::Null
+    } else {
+        serde_json::json!(col.value(i))
+    }
 }
 
 /// `v[key]`, made an empty object first where absent.
