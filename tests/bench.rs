@@ -78,6 +78,7 @@ fn micro_suite_writes_its_files_and_a_second_run_reuses_the_cache() {
             "scene",
             "variant",
             "budget",
+            "seed",
             "method",
             "metric",
             "value",

@@ -6,8 +6,10 @@
 //! declared once (the scene and rays of a scene are shared by every variant and budget), so the
 //! runner computes each once and the cache shares everything else.
 //!
-//! Instances are named `ROLE-SCENE[-VARIANT][-bBUDGET]`, where ROLE is the base stage's name and
-//! the variant and budget parts appear only when that role depends on them.
+//! With `seeds:` every run is repeated once per seed value.
+//!
+//! Instances are named `ROLE-SCENE[-VARIANT][-bBUDGET][-sSEED]`, where ROLE is the base stage's
+//! name and the variant, budget and seed parts appear only when that role depends on them.
 
 use std::{
     collections::{BTreeMap, BTreeSet},
@@ -21,12 +23,14 @@ use stages::ScoreSpec;
 use super::suite::{Setting, Suite, Variant};
 use crate::config::{set_path, ConfigError, Loc};
 
-/// One (scene, variant, budget) combination and the stage instances that compute it.
+/// One (scene, variant, budget, seed) combination and the stage instances that compute it.
 #[derive(Debug, Clone)]
 pub struct Run {
     pub scene: String,
     pub variant: String,
     pub budget: u64,
+    /// The value of the suite's seed parameter (`None`: the suite has no `seeds:`).
+    pub seed: Option<u64>,
     /// Base stage name (role) -> stage instance name in the generated pipeline.
     pub instances: BTreeMap<String, String>,
 }
@@ -47,6 +51,30 @@ pub struct Plan {
     pub spec: &'static ScoreSpec,
     /// Variants left out, with the reason (optional ones this build cannot express).
     pub skipped: Vec<(String, String)>,
+}
+
+impl Plan {
+    /// One run per (scene, variant, budget), its first seed's: the tables have a row for each
+    /// (with figures over all its seeds).
+    pub fn cells(&self) -> impl Iterator<Item = &Run> {
+        self.runs
+            .iter()
+            .enumerate()
+            .filter(|&(k, r)| !self.runs[..k].iter().any(|o| o.same_cell(r)))
+            .map(|(_, r)| r)
+    }
+
+    /// The runs of `run`'s (scene, variant, budget), one per seed.
+    pub fn seeds_of<'a>(&'a self, run: &'a Run) -> impl Iterator<Item = &'a Run> {
+        self.runs.iter().filter(move |o| o.same_cell(run))
+    }
+}
+
+impl Run {
+    fn same_cell(&self, o: &Run) -> bool {
+        (self.scene.as_str(), self.variant.as_str(), self.budget)
+            == (o.scene.as_str(), o.variant.as_str(), o.budget)
+    }
 }
 
 fn cfg_err(suite: &Suite, s: &Setting, msg: String) -> ConfigError {
@@ -292,11 +320,13 @@ struct Combo {
     scene: String,
     variant: String,
     budget: u64,
+    seed: Option<u64>,
     params: BTreeMap<String, Yaml>,
     identity: BTreeMap<String, String>,
 }
 
-/// Every (scene, variant, budget) of the suite, with its params and the identity of each role.
+/// Every (scene, variant, budget, seed) of the suite, with its params and the identity of each
+/// role.
 fn combos(
     suite: &Suite,
     base: &[BaseStage],
@@ -305,10 +335,18 @@ fn combos(
     extra: &[Setting],
     budget_param: &Setting,
 ) -> Vec<Combo> {
+    let seeds: Vec<Option<u64>> = match &suite.seeds {
+        Some(s) => s.values.iter().copied().map(Some).collect(),
+        None => vec![None],
+    };
     let mut combos = Vec::new();
     for sc in &suite.scenes {
         for v in variants.iter().filter(|v| v.scenes.contains(&sc.name)) {
-            for &b in &v.budgets {
+            for (&b, &seed) in v
+                .budgets
+                .iter()
+                .flat_map(|b| seeds.iter().map(move |s| (b, s)))
+            {
                 let mut params: BTreeMap<String, Yaml> = base
                     .iter()
                     .map(|s| (s.name.clone(), s.params.clone()))
@@ -317,6 +355,10 @@ fn combos(
                     value: Yaml::Number(b.into()),
                     ..budget_param.clone()
                 };
+                let seed_setting = suite.seeds.as_ref().zip(seed).map(|(s, value)| Setting {
+                    value: Yaml::Number(value.into()),
+                    ..s.param.clone()
+                });
                 for s in suite
                     .set
                     .iter()
@@ -324,6 +366,7 @@ fn combos(
                     .chain(&sc.set)
                     .chain(&v.set)
                     .chain([&budget])
+                    .chain(seed_setting.as_ref())
                 {
                     let path: Vec<&str> = s.key.split('.').collect();
                     let p = params.get_mut(path[0]).expect("key checked");
@@ -349,6 +392,7 @@ fn combos(
                     scene: sc.name.clone(),
                     variant: v.name.clone(),
                     budget: b,
+                    seed,
                     params,
                     identity,
                 });
@@ -358,17 +402,35 @@ fn combos(
     combos
 }
 
-/// Whether a role depends on the variant (`on_variant`) or the budget: two runs differing
-/// only in it differ there.
-fn depends(combos: &[Combo], role: &str, on_variant: bool) -> bool {
+/// What distinguishes the runs of one scene.
+#[derive(Clone, Copy, PartialEq)]
+enum Axis {
+    Variant,
+    Budget,
+    Seed,
+}
+
+impl Axis {
+    const ALL: [Axis; 3] = [Axis::Variant, Axis::Budget, Axis::Seed];
+
+    fn same(self, a: &Combo, b: &Combo) -> bool {
+        match self {
+            Axis::Variant => a.variant == b.variant,
+            Axis::Budget => a.budget == b.budget,
+            Axis::Seed => a.seed == b.seed,
+        }
+    }
+}
+
+/// Whether a role depends on `axis`: two runs differing only along it differ there.
+fn depends(combos: &[Combo], role: &str, axis: Axis) -> bool {
     combos.iter().any(|a| {
         combos.iter().any(|b| {
             a.scene == b.scene
-                && if on_variant {
-                    a.budget == b.budget && a.variant != b.variant
-                } else {
-                    a.variant == b.variant && a.budget != b.budget
-                }
+                && !axis.same(a, b)
+                && Axis::ALL
+                    .iter()
+                    .all(|&other| other == axis || other.same(a, b))
                 && a.identity[role] != b.identity[role]
         })
     })
@@ -377,27 +439,25 @@ fn depends(combos: &[Combo], role: &str, on_variant: bool) -> bool {
 /// The stage declarations of the generated pipeline (each distinct instance once) and the runs
 /// with their instance names.
 fn instances(base: &[BaseStage], roles: &[String], combos: &[Combo]) -> (Mapping, Vec<Run>) {
-    // A role's name carries the variant (budget) where two runs differing only in it differ
-    // there; and where two runs differing in both differ there while the names would still
-    // meet (a variant with budgets of its own), both.
-    let mut by_variant: BTreeMap<&String, bool> = roles
+    // A role's name carries the variant (budget, seed) where two runs differing only in it
+    // differ there; and where two runs differing in several differ there while the names would
+    // still meet (a variant with budgets of its own), all of them.
+    let mut by: BTreeMap<&String, [bool; 3]> = roles
         .iter()
-        .map(|r| (r, depends(combos, r, true)))
-        .collect();
-    let mut by_budget: BTreeMap<&String, bool> = roles
-        .iter()
-        .map(|r| (r, depends(combos, r, false)))
+        .map(|r| (r, Axis::ALL.map(|axis| depends(combos, r, axis))))
         .collect();
     for r in roles {
+        let named = by[r];
         let meet = |a: &Combo, b: &Combo| {
             a.scene == b.scene
-                && (!by_variant[r] || a.variant == b.variant)
-                && (!by_budget[r] || a.budget == b.budget)
+                && Axis::ALL
+                    .iter()
+                    .zip(named)
+                    .all(|(axis, n)| !n || axis.same(a, b))
                 && a.identity[r] != b.identity[r]
         };
         if combos.iter().any(|a| combos.iter().any(|b| meet(a, b))) {
-            by_variant.insert(r, true);
-            by_budget.insert(r, true);
+            by.insert(r, [true; 3]);
         }
     }
     let mut stages_out = Mapping::new();
@@ -406,11 +466,15 @@ fn instances(base: &[BaseStage], roles: &[String], combos: &[Combo]) -> (Mapping
         let mut names = BTreeMap::new();
         for r in roles {
             let mut n = format!("{r}-{}", c.scene);
-            if by_variant[r] {
+            let [variant, budget, seed] = by[r];
+            if variant {
                 n.push_str(&format!("-{}", c.variant));
             }
-            if by_budget[r] {
+            if budget {
                 n.push_str(&format!("-b{}", c.budget));
+            }
+            if let (true, Some(s)) = (seed, c.seed) {
+                n.push_str(&format!("-s{s}"));
             }
             names.insert(r.clone(), n.clone());
             let key = Yaml::String(n);
@@ -437,6 +501,7 @@ fn instances(base: &[BaseStage], roles: &[String], combos: &[Combo]) -> (Mapping
             scene: c.scene.clone(),
             variant: c.variant.clone(),
             budget: c.budget,
+            seed: c.seed,
             instances: names,
         });
     }
@@ -468,6 +533,7 @@ pub fn build(
         .chain(extra)
         .chain(suite.scenes.iter().flat_map(|s| &s.set))
         .chain([&budget_param])
+        .chain(suite.seeds.as_ref().map(|s| &s.param))
     {
         check_key(&base, base_file, &s.key).map_err(|m| cfg_err(suite, s, m))?;
     }
@@ -591,5 +657,40 @@ mod tests {
         let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
         assert_eq!(p.skipped.len(), 1);
         assert_eq!(p.runs.len(), 2);
+    }
+
+    #[test]
+    fn seeds_repeat_every_run_and_name_only_the_stages_they_reach() {
+        let s = super::super::suite::parse(
+            Path::new("s.yaml"),
+            "name: t\nscenes: [{name: a}]\nbudgets: [5, 10]\nseeds: {param: train.train.seed, values: [0, 7]}\nvariants:\n  - {name: full}\n",
+        )
+        .unwrap();
+        let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
+        assert_eq!(p.runs.len(), 4);
+        let pipe = crate::config::parse(Path::new("gen.yaml"), &p.yaml, &[]).unwrap();
+        // scene, rays + 4 x (train, render, evaluate).
+        assert_eq!(pipe.stages.len(), 14);
+        for r in &p.runs {
+            let seed = r.seed.unwrap();
+            assert_eq!(r.instances["scene"], "scene-a");
+            let train = format!("train-a-b{}-s{seed}", r.budget);
+            assert_eq!(r.instances["train"], train);
+            let t = &pipe.stages[pipe.index_of(&train).unwrap()];
+            assert_eq!(t.params["train"]["seed"], seed);
+            assert_eq!(t.params["train"]["iterations"], r.budget);
+        }
+        let cells: Vec<(u64, Option<u64>)> = p.cells().map(|r| (r.budget, r.seed)).collect();
+        assert_eq!(cells, [(5, Some(0)), (10, Some(0))]);
+        let first = p.cells().next().unwrap();
+        let seeds: Vec<Option<u64>> = p.seeds_of(first).map(|r| r.seed).collect();
+        assert_eq!(seeds, [Some(0), Some(7)]);
+        let bad = super::super::suite::parse(
+            Path::new("s.yaml"),
+            "name: t\nscenes: [{name: a}]\nbudgets: [5]\nseeds: {param: train.train.sed, values: [0]}\nvariants:\n  - {name: full}\n",
+        )
+        .unwrap();
+        let e = build(&bad, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap_err();
+        assert!(e.to_string().contains("train.sed"), "{e}");
     }
 }

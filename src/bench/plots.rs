@@ -330,15 +330,23 @@ pub fn time_vs_error(
                 if !semantic && m.semantic {
                     continue;
                 }
-                let mut points: Vec<(f64, f64)> = rows
-                    .iter()
-                    .filter(|r| {
-                        r.scene == scene
-                            && &r.variant == name
-                            && r.method == spec.method
-                            && r.metric == m.name
-                    })
-                    .filter_map(|r| r.value.map(|v| (r.train_wall_s, v * m.scale)))
+                // One point per budget: the mean over its seeds of time and value.
+                let mut by_budget: std::collections::BTreeMap<u64, (f64, f64, f64)> =
+                    Default::default();
+                for r in rows.iter().filter(|r| {
+                    r.scene == scene
+                        && &r.variant == name
+                        && r.method == spec.method
+                        && r.metric == m.name
+                }) {
+                    if let Some(v) = r.value {
+                        let e = by_budget.entry(r.budget).or_default();
+                        *e = (e.0 + r.train_wall_s, e.1 + v * m.scale, e.2 + 1.0);
+                    }
+                }
+                let mut points: Vec<(f64, f64)> = by_budget
+                    .values()
+                    .map(|&(t, v, n)| (t / n, v / n))
                     .collect();
                 points.sort_by(|a, b| a.0.total_cmp(&b.0));
                 // Variants run at one budget only belong to the ablation table, not here.

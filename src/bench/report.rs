@@ -11,7 +11,7 @@ use super::{
     doc::Doc,
     machine::{self, Timing},
     plan::{Plan, Run},
-    results::{value, Manifests, Row},
+    results::{spread, Manifests, Row, Spread},
     suite::{Suite, Variant},
 };
 use crate::runner::{fmt_bytes, fmt_secs, Outcome, RunReport};
@@ -82,12 +82,13 @@ impl Input<'_> {
         self.suite.variants.iter().find(|v| v.name == name)
     }
 
-    /// Ours' `metric` in `run`; none for a semantic metric of a variant without semantics.
-    fn ours(&self, run: &Run, semantics: bool, metric: &MetricInfo) -> Option<f64> {
+    /// Ours' `metric` in `run`'s (scene, variant, budget) over its seeds; none for a semantic
+    /// metric of a variant without semantics.
+    fn ours_spread(&self, run: &Run, semantics: bool, metric: &MetricInfo) -> Option<Spread> {
         if !semantics && metric.semantic {
             return None;
         }
-        value(
+        spread(
             self.rows,
             &run.scene,
             &run.variant,
@@ -97,9 +98,33 @@ impl Input<'_> {
         )
     }
 
-    /// Wall time of the training stage of `run`.
+    /// Ours' `metric` in `run`: the mean over its seeds.
+    fn ours(&self, run: &Run, semantics: bool, metric: &MetricInfo) -> Option<f64> {
+        self.ours_spread(run, semantics, metric).map(|s| s.mean)
+    }
+
+    /// [`Input::ours`] as a table shows it: with the seeds' standard deviation when there are
+    /// several.
+    fn ours_cell(&self, run: &Run, semantics: bool, metric: &MetricInfo) -> String {
+        match self.ours_spread(run, semantics, metric) {
+            Some(s) if s.n > 1 => format!(
+                "{} ± {:.*}",
+                cell(Some(s.mean), metric),
+                metric.decimals,
+                s.sd * metric.scale
+            ),
+            s => cell(s.map(|s| s.mean), metric),
+        }
+    }
+
+    /// Wall time of the training stage of `run` (the mean over its seeds).
     fn train_wall(&self, run: &Run) -> f64 {
-        self.manifests[&run.instances[&self.plan.train_role]].wall_s
+        let walls: Vec<f64> = self
+            .plan
+            .seeds_of(run)
+            .map(|r| self.manifests[&r.instances[&self.plan.train_role]].wall_s)
+            .collect();
+        walls.iter().sum::<f64>() / walls.len().max(1) as f64
     }
 
     /// Training time to come within one unit of the headline metric (1 mIoU) of the first
@@ -110,8 +135,7 @@ impl Input<'_> {
         let variant = &self.suite.variants.first()?.name;
         let mut runs: Vec<&Run> = self
             .plan
-            .runs
-            .iter()
+            .cells()
             .filter(|r| r.scene == scene && &r.variant == variant)
             .collect();
         runs.sort_by_key(|r| r.budget);
@@ -200,6 +224,14 @@ fn machine_and_build(d: &mut Doc, i: &Input) {
             seed_list.push(format!("{}: {}", sc.name, v.join(", ")));
         }
     }
+    if let Some(seeds) = &s.seeds {
+        let values: Vec<String> = seeds.values.iter().map(u64::to_string).collect();
+        seed_list.push(format!(
+            "every run once per `{}` in {} (tables: mean ± standard deviation over them)",
+            seeds.param.key,
+            values.join(", ")
+        ));
+    }
     d.table(
         &["", ""],
         vec![
@@ -262,7 +294,7 @@ fn time_against_error(d: &mut Doc, i: &Input) {
             format!("{}: {} against training time", sc.name, and_list(&plotted)),
         );
         let mut rows = Vec::new();
-        for run in i.plan.runs.iter().filter(|r| r.scene == sc.name) {
+        for run in i.plan.cells().filter(|r| r.scene == sc.name) {
             let v = i.variant(&run.variant);
             let sem = v.is_none_or(|v| v.semantics);
             let mut row = vec![
@@ -270,7 +302,7 @@ fn time_against_error(d: &mut Doc, i: &Input) {
                 run.budget.to_string(),
                 format!("{:.1}", i.train_wall(run)),
             ];
-            row.extend(per_run.iter().map(|m| cell(i.ours(run, sem, m), m)));
+            row.extend(per_run.iter().map(|m| i.ours_cell(run, sem, m)));
             rows.push(row);
         }
         let mut header = vec!["variant", "budget", "train wall s"];
@@ -289,11 +321,10 @@ fn baselines(d: &mut Doc, i: &Input, scene: &str) {
     let first = i.suite.variants.first().map(|v| v.name.as_str());
     let longest = i
         .plan
-        .runs
-        .iter()
+        .cells()
         .filter(|r| r.scene == scene && Some(r.variant.as_str()) == first)
         .max_by_key(|r| r.budget);
-    let Some(run) = longest.or_else(|| i.plan.runs.iter().find(|r| r.scene == scene)) else {
+    let Some(run) = longest.or_else(|| i.plan.cells().find(|r| r.scene == scene)) else {
         return;
     };
     let per_baseline = metrics(spec, spec.per_baseline);
@@ -303,8 +334,8 @@ fn baselines(d: &mut Doc, i: &Input, scene: &str) {
         .map(|b| {
             let mut row = vec![b.name.to_string()];
             row.extend(per_baseline.iter().map(|m| {
-                let v = value(i.rows, &run.scene, &run.variant, run.budget, b.name, m.name);
-                cell(v, m)
+                let v = spread(i.rows, &run.scene, &run.variant, run.budget, b.name, m.name);
+                cell(v.map(|s| s.mean), m)
             }));
             row
         })
@@ -363,13 +394,13 @@ fn ablation(d: &mut Doc, i: &Input) {
     for sc in &s.scenes {
         let mut rows = Vec::new();
         for v in &s.variants {
-            let Some(run) = i.plan.runs.iter().find(|r| {
+            let Some(run) = i.plan.cells().find(|r| {
                 r.scene == sc.name && r.variant == v.name && r.budget == s.ablation_budget
             }) else {
                 continue;
             };
             let mut row = vec![v.label.clone()];
-            row.extend(ablated.iter().map(|m| cell(i.ours(run, v.semantics, m), m)));
+            row.extend(ablated.iter().map(|m| i.ours_cell(run, v.semantics, m)));
             if s.paper.is_some() {
                 row.push(v.paper.clone().unwrap_or_default());
             }
@@ -476,7 +507,7 @@ fn files(d: &mut Doc, i: &Input) {
         .map(|m| format!("`{m}`"))
         .collect();
     d.h(2, "Files");
-    d.p(format!("`{RESULTS_FILE}`: one row per scene x variant x budget x method x metric (columns scene, variant, budget, method, metric, value, train_wall_s); methods {} carry the `{}` stage's `{}` table, `stage:ROLE` rows carry wall_s, cpu_s and peak_rss_bytes of each stage. `{PIPELINE_FILE}`: the pipeline the bench ran (`pipe status -f` it). `{RUN_REPORT_FILE}`: the runner's report of this bench.", methods.join(", "), i.plan.eval_role, spec.table));
+    d.p(format!("`{RESULTS_FILE}`: one row per scene x variant x budget x seed x method x metric (columns scene, variant, budget, seed (null without `seeds:`), method, metric, value, train_wall_s); methods {} carry the `{}` stage's `{}` table, `stage:ROLE` rows carry wall_s, cpu_s and peak_rss_bytes of each stage. `{PIPELINE_FILE}`: the pipeline the bench ran (`pipe status -f` it). `{RUN_REPORT_FILE}`: the runner's report of this bench.", methods.join(", "), i.plan.eval_role, spec.table));
 }
 
 #[cfg(test)]

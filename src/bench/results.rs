@@ -1,4 +1,4 @@
-//! The bench's results in long form, one row per (scene, variant, budget, method, metric), read
+//! The bench's results in long form, one row per (scene, variant, budget, seed, method, metric), read
 //! from the cache after the run: the scoring stage's score table (`ScoreSpec::table`, columns
 //! method, metric, value), and each stage's wall time, CPU time and peak RSS from its manifest
 //! (method `stage:ROLE`). Written as `results.parquet` (readable with pandas / pyarrow).
@@ -20,6 +20,8 @@ pub struct Row {
     pub scene: String,
     pub variant: String,
     pub budget: u64,
+    /// The run's seed (`None`: the suite has no `seeds:`).
+    pub seed: Option<u64>,
     pub method: String,
     pub metric: String,
     pub value: Option<f64>,
@@ -75,6 +77,7 @@ pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>, Be
             scene: run.scene.clone(),
             variant: run.variant.clone(),
             budget: run.budget,
+            seed: run.seed,
             method: method.to_string(),
             metric: metric.to_string(),
             value,
@@ -111,24 +114,47 @@ pub fn collect(plan: &Plan, store: &Store, m: &Manifests) -> Result<Vec<Row>, Be
     Ok(rows)
 }
 
-/// The value of one metric of one run, if present and not null.
-pub fn value(
+/// One metric over the seeds of a (scene, variant, budget): the mean, the sample standard
+/// deviation (0 for one seed) and how many seeds had a value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Spread {
+    pub mean: f64,
+    pub sd: f64,
+    pub n: usize,
+}
+
+/// [`Spread`] of one metric of one (scene, variant, budget) over its seeds; `None` where no
+/// seed has a value.
+pub fn spread(
     rows: &[Row],
     scene: &str,
     variant: &str,
     budget: u64,
     method: &str,
     metric: &str,
-) -> Option<f64> {
-    rows.iter()
-        .find(|r| {
+) -> Option<Spread> {
+    let vs: Vec<f64> = rows
+        .iter()
+        .filter(|r| {
             r.scene == scene
                 && r.variant == variant
                 && r.budget == budget
                 && r.method == method
                 && r.metric == metric
         })
-        .and_then(|r| r.value)
+        .filter_map(|r| r.value)
+        .collect();
+    let n = vs.len();
+    if n == 0 {
+        return None;
+    }
+    let mean = vs.iter().sum::<f64>() / n as f64;
+    let sd = if n > 1 {
+        (vs.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt()
+    } else {
+        0.0
+    };
+    Some(Spread { mean, sd, n })
 }
 
 /// The rows as one Arrow batch (the schema of `results.parquet`).
@@ -137,6 +163,7 @@ pub fn to_batch(rows: &[Row]) -> Result<RecordBatch, BenchError> {
         Field::new("scene", DataType::Utf8, false),
         Field::new("variant", DataType::Utf8, false),
         Field::new("budget", DataType::UInt64, false),
+        Field::new("seed", DataType::UInt64, true),
         Field::new("method", DataType::Utf8, false),
         Field::new("metric", DataType::Utf8, false),
         Field::new("value", DataType::Float64, true),
@@ -149,6 +176,7 @@ pub fn to_batch(rows: &[Row]) -> Result<RecordBatch, BenchError> {
         s(|r| &r.scene),
         s(|r| &r.variant),
         Arc::new(UInt64Array::from_iter_values(rows.iter().map(|r| r.budget))),
+        Arc::new(UInt64Array::from_iter(rows.iter().map(|r| r.seed))),
         s(|r| &r.method),
         s(|r| &r.metric),
         Arc::new(Float64Array::from_iter(rows.iter().map(|r| r.value))),
@@ -157,4 +185,41 @@ pub fn to_batch(rows: &[Row]) -> Result<RecordBatch, BenchError> {
         )),
     ];
     Ok(RecordBatch::try_new(Arc::new(schema), cols)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(seed: Option<u64>, metric: &str, value: Option<f64>) -> Row {
+        Row {
+            scene: "a".into(),
+            variant: "v".into(),
+            budget: 5,
+            seed,
+            method: "m".into(),
+            metric: metric.into(),
+            value,
+            train_wall_s: 1.0,
+        }
+    }
+
+    #[test]
+    fn spread_is_the_mean_and_sample_deviation_over_seeds() {
+        let rows = [
+            row(Some(0), "x", Some(1.0)),
+            row(Some(1), "x", Some(2.0)),
+            row(Some(2), "x", Some(6.0)),
+            row(Some(3), "x", None),
+            row(None, "y", Some(4.0)),
+        ];
+        let s = spread(&rows, "a", "v", 5, "m", "x").unwrap();
+        assert_eq!((s.mean, s.n), (3.0, 3));
+        // Deviations -2, -1, 3: (4 + 1 + 9) / 2 = 7.
+        assert!((s.sd - 7f64.sqrt()).abs() < 1e-12, "{}", s.sd);
+        let one = spread(&rows, "a", "v", 5, "m", "y").unwrap();
+        assert_eq!((one.mean, one.sd, one.n), (4.0, 0.0, 1));
+        assert_eq!(spread(&rows, "a", "v", 6, "m", "x"), None);
+        assert_eq!(spread(&rows[3..4], "a", "v", 5, "m", "x"), None);
+    }
 }

@@ -14,6 +14,9 @@
 //! paper:                                      # optional: what the variants' `paper:` are
 //!   column: paper                             # the ablation table's column (default `paper`)
 //!   note: The last column is the paper's figure (RMSE / delta / mIoU).
+//! seeds:                                      # optional: every run once per value of `param`;
+//!   param: train.train.seed                   # tables show the mean and the spread
+//!   values: [0, 1, 2]
 //! variants:
 //!   - {name: complete, paper: "5.23 / 95.1 / 81.4"}
 //!   - {name: no_depth, label: "w/o L_depth", set: {train.train.losses.depth: 0}, budgets: [400]}
@@ -46,6 +49,11 @@ pub const BUILT_IN: &[(&str, &str, &str)] = &[
         "benches/suites/full.yaml",
         include_str!("../../benches/suites/full.yaml"),
     ),
+    (
+        "seeds",
+        "benches/suites/seeds.yaml",
+        include_str!("../../benches/suites/seeds.yaml"),
+    ),
 ];
 
 fn yes() -> bool {
@@ -75,6 +83,15 @@ struct SuiteFile {
     overhead_repeats: Option<usize>,
     #[serde(default)]
     goal_train_s: Option<f64>,
+    #[serde(default)]
+    seeds: Option<SeedsFile>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SeedsFile {
+    param: String,
+    values: Vec<u64>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -158,6 +175,16 @@ pub struct Paper {
     pub note: String,
 }
 
+/// `seeds:`: every run repeated once per value of a seed parameter, so that the tables can say
+/// how much of a difference between two variants is the seed's.
+#[derive(Debug, Clone)]
+pub struct Seeds {
+    /// The seed parameter (`STAGE.PARAM[.FIELD...]`); its `value` is unused.
+    pub param: Setting,
+    /// Distinct values, in the suite's order.
+    pub values: Vec<u64>,
+}
+
 /// A validated suite.
 #[derive(Debug, Clone)]
 pub struct Suite {
@@ -182,6 +209,7 @@ pub struct Suite {
     /// `goal_train_s:`: the training time the suite's scenes should come near their best
     /// within (the report says whether they did); none: no goal.
     pub goal_train_s: Option<f64>,
+    pub seeds: Option<Seeds>,
 }
 
 /// Whether `--suite` names a file rather than a built-in suite.
@@ -268,6 +296,49 @@ impl Cx<'_> {
         }
     }
 
+    /// A parameter named by its key (`budget_param`, `seeds.param`) at key path `path`.
+    fn param(&self, key: &str, path: &str) -> Result<Setting, ConfigError> {
+        let loc = self.locs.value(path);
+        if key.split('.').count() < 2 || key.split('.').any(str::is_empty) {
+            return Err(self.err(
+                loc,
+                Some(path),
+                format!("`{key}`: expected STAGE.PARAM[.FIELD...]"),
+            ));
+        }
+        Ok(Setting {
+            key: key.to_string(),
+            value: Yaml::Null,
+            loc,
+            path: path.to_string(),
+        })
+    }
+
+    fn seeds(&self, raw: &SeedsFile) -> Result<Seeds, ConfigError> {
+        let mut values = Vec::new();
+        for &v in &raw.values {
+            if values.contains(&v) {
+                return Err(self.err(
+                    self.locs.key("seeds.values"),
+                    Some("seeds.values"),
+                    format!("seed {v} is listed twice"),
+                ));
+            }
+            values.push(v);
+        }
+        if values.is_empty() {
+            return Err(self.err(
+                self.locs.key("seeds.values"),
+                Some("seeds.values"),
+                "expected at least one seed".into(),
+            ));
+        }
+        Ok(Seeds {
+            param: self.param(&raw.param, "seeds.param")?,
+            values,
+        })
+    }
+
     fn check_budgets(&self, budgets: &[u64], path: &str) -> Result<(), ConfigError> {
         if budgets.is_empty() || budgets.contains(&0) {
             return Err(self.err(
@@ -304,25 +375,12 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
     let scenes = scenes(&cx, &raw.scenes)?;
     let variants = variants(&cx, &raw, &scenes)?;
     let paper = paper(&cx, &raw)?;
-    let budget_param = match &raw.budget_param {
-        None => None,
-        Some(key) => {
-            let loc = cx.locs.value("budget_param");
-            if key.split('.').count() < 2 {
-                return Err(cx.err(
-                    loc,
-                    Some("budget_param"),
-                    format!("`{key}`: expected STAGE.PARAM[.FIELD...]"),
-                ));
-            }
-            Some(Setting {
-                key: key.clone(),
-                value: Yaml::Null,
-                loc,
-                path: "budget_param".into(),
-            })
-        }
-    };
+    let budget_param = raw
+        .budget_param
+        .as_ref()
+        .map(|key| cx.param(key, "budget_param"))
+        .transpose()?;
+    let seeds = raw.seeds.as_ref().map(|s| cx.seeds(s)).transpose()?;
     Ok(Suite {
         ablation_budget: raw
             .ablation_budget
@@ -340,6 +398,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         variants,
         overhead_repeats: raw.overhead_repeats.unwrap_or(5).max(1),
         goal_train_s: raw.goal_train_s.filter(|g| g.is_finite() && *g > 0.0),
+        seeds,
     })
 }
 
@@ -549,5 +608,34 @@ mod tests {
         );
         assert_eq!(s.variants[0].paper.as_deref(), Some("1 / 2"));
         assert_eq!(s.variants[1].paper, None);
+    }
+
+    #[test]
+    fn seeds_are_distinct_values_of_one_parameter() {
+        let base = "name: x\nscenes: [{name: a}]\nbudgets: [1]\nvariants: [{name: v}]\n";
+        let s = parse(
+            Path::new("s.yaml"),
+            &format!("{base}seeds: {{param: train.train.seed, values: [3, 1]}}\n"),
+        )
+        .unwrap();
+        let seeds = s.seeds.unwrap();
+        assert_eq!(seeds.param.key, "train.train.seed");
+        assert_eq!(seeds.values, [3, 1]);
+        assert!(parse(Path::new("s.yaml"), base).unwrap().seeds.is_none());
+        for (seeds, want) in [
+            ("{param: train.train.seed, values: [1, 1]}", "s.yaml:5:"),
+            ("{param: train.train.seed, values: []}", "s.yaml:5:"),
+            ("{param: seed, values: [1]}", "s.yaml:5:"),
+            ("{param: train.train.seed, valeus: [1]}", "s.yaml:5:"),
+        ] {
+            let e = parse(Path::new("s.yaml"), &format!("{base}seeds: {seeds}\n")).unwrap_err();
+            assert!(e.to_string().starts_with(want), "{seeds}: {e}");
+        }
+        let e = parse(
+            Path::new("s.yaml"),
+            &format!("{base}seeds: {{param: train.train.seed, values: [2, 2]}}\n"),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("seed 2 is listed twice"), "{e}");
     }
 }
