@@ -66,6 +66,12 @@ pub struct SceneParams {
     /// class it is confused with, as networks fail on distant regions
     /// ([`noise::far_region_errors`]); 0 = off, the default.
     pub noise_far_regions: f64,
+    /// Amount of surface detail in the procedural textures (per-stone, per-slab and grain
+    /// variation on road, walls, facades, grass and foliage), 1 = the default street, 0 = every
+    /// surface one flat colour between its joints, markings and windows. Real streets are
+    /// closer to 0 than the default: uniform asphalt and rendered walls give stereo and the
+    /// photometric loss little to match, so geometry must come from elsewhere.
+    pub texture: f64,
     /// Farthest depth stereo matching reports, metres.
     pub stereo_max_depth_m: f64,
     /// Classes that appear (paper class names); road, terrain and sky are required.
@@ -96,6 +102,7 @@ impl Default for SceneParams {
             camera_height_m: 1.55,
             noise: 1.0,
             noise_far_regions: 0.0,
+            texture: 1.0,
             stereo_max_depth_m: 15.0,
             classes: PAPER_CLASSES
                 .iter()
@@ -189,6 +196,7 @@ impl SceneParams {
             seed: self.seed,
             street_length: self.street_length_m,
             classes: self.class_ids()?,
+            texture: self.texture,
         })
     }
 
@@ -260,6 +268,9 @@ impl SceneParams {
         }
         if !(p.noise.is_finite() && (0.0..=10.0).contains(&p.noise)) {
             return bad(format!("`noise` must be in [0, 10], got {}", p.noise));
+        }
+        if !(p.texture.is_finite() && (0.0..=1.0).contains(&p.texture)) {
+            return bad(format!("`texture` must be in [0, 1], got {}", p.texture));
         }
         if !(p.noise_far_regions.is_finite() && (0.0..=1.0).contains(&p.noise_far_regions)) {
             return bad(format!(

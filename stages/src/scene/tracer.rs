@@ -79,9 +79,22 @@ fn mix(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
     std::array::from_fn(|k| a[k] + (b[k] - a[k]) * t)
 }
 
-/// The albedo of a material at world point `p` with outward normal `n`.
-pub fn albedo(m: &Material, p: DVec3, n: DVec3) -> [f64; 3] {
+/// The albedo of a material at world point `p` with outward normal `n`; `texture` scales every
+/// random variation about its mean (0: flat colours, joints and markings kept).
+pub fn albedo(m: &Material, p: DVec3, n: DVec3, texture: f64) -> [f64; 3] {
     let c = m.color;
+    // Every noise below is in [0, 1] about 0.5; texture 1 leaves it bit for bit.
+    let d = |v: f64| {
+        if texture == 1.0 {
+            v
+        } else {
+            0.5 + texture * (v - 0.5)
+        }
+    };
+    let fbm2 = |k, x, y| d(fbm2(k, x, y));
+    let value2 = |k, x, y| d(value2(k, x, y));
+    let value3 = |k, x, y, z| d(value3(k, x, y, z));
+    let unit = |key: &[u64]| d(unit(key));
     let up = n.z > 0.5;
     let k = 0x7E47;
     match m.pattern {
@@ -220,7 +233,7 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
     let t = hit.t_in.max(0.0);
     let p = ray.at(t);
     let n = hit.normal_in;
-    let a = albedo(&layout.materials[hit.prim as usize], p, n);
+    let a = albedo(&layout.materials[hit.prim as usize], p, n, layout.texture);
     let s = sun();
     let lit = n.dot(s).max(0.0);
     let shadow = lit > 0.0 && {
@@ -289,4 +302,47 @@ pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look) -> Rendered
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::layout::Material;
+
+    #[test]
+    fn texture_scales_every_variation_about_its_mean_and_keeps_joints() {
+        let points = [
+            DVec3::new(0.31, 2.2, 0.4),
+            DVec3::new(5.77, -1.3, 1.9),
+            DVec3::new(-3.1, 7.45, 0.05),
+        ];
+        let wall = DVec3::new(0.0, 1.0, 0.0);
+        for pattern in [Pattern::Concrete, Pattern::Metal, Pattern::Bark] {
+            let m = Material {
+                pattern,
+                color: [0.5, 0.4, 0.3],
+            };
+            let a = |p, t| albedo(&m, p, wall, t);
+            let mut most = 0f64;
+            for q in &points[1..] {
+                for k in 0..3 {
+                    // Linear in the texture: half the detail, half the difference.
+                    let full = a(*q, 1.0)[k] - a(points[0], 1.0)[k];
+                    let half = a(*q, 0.5)[k] - a(points[0], 0.5)[k];
+                    assert!((half - 0.5 * full).abs() < 1e-12, "{pattern:?}");
+                    most = most.max(full.abs());
+                    assert_eq!(a(*q, 0.0)[k], a(points[0], 0.0)[k], "{pattern:?} flat at 0");
+                }
+            }
+            assert!(most > 1e-3, "{pattern:?} varies at texture 1");
+        }
+        // Brick at texture 0: every brick alike, the mortar still apart.
+        let brick = Material {
+            pattern: Pattern::Brick,
+            color: [0.6, 0.3, 0.2],
+        };
+        let b = |x: f64, z: f64| albedo(&brick, DVec3::new(x, 0.0, z), wall, 0.0);
+        assert_eq!(b(0.05, 0.04), b(0.53, 0.19));
+        assert_ne!(b(0.05, 0.04), b(0.05, 0.076));
+    }
 }

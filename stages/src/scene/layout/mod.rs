@@ -49,6 +49,8 @@ pub struct Layout {
     pub bounds: Vec<Primitive>,
     /// Street extent along x (the stuff strips span it).
     pub x_range: (f64, f64),
+    /// Amount of texture detail (`SceneParams::texture`).
+    pub texture: f64,
 }
 
 /// What the layout depends on.
@@ -59,6 +61,9 @@ pub struct LayoutParams {
     pub street_length: f64,
     /// Classes that may appear (label ids); road, terrain are always present.
     pub classes: Vec<u8>,
+    /// Amount of texture detail, 0..=1 (the rendering's, not the layout's: no random draw
+    /// depends on it).
+    pub texture: f64,
 }
 
 /// Builds the scene. Deterministic in `p`: the ground's parts, its stuff bounds, then each
@@ -95,5 +100,6 @@ pub fn build(p: &LayoutParams) -> Layout {
         materials: b.materials,
         bounds: b.bounds,
         x_range: (x0, x1),
+        texture: p.texture,
     }
 }
