@@ -21,7 +21,7 @@ use crate::model::{
 use crate::rng::SplitMix64;
 use crate::sampling::{self, ImageRays, PrimInfo, SamplingParams};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
-use crate::tables;
+use crate::{labels, tables};
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -37,6 +37,32 @@ pub struct TrainParams {
     /// The engine: `fused` (default: hand-written CPU kernels of the grid field), or a burn
     /// backend: flex, ndarray, wgpu or cuda (the latter need their cargo feature).
     pub backend: Engine,
+    /// Classes (KITTI-360 names) whose primitives carry the stereo depth: L_depth only on rays
+    /// that cross a primitive of one of them. Empty (the default, the paper's form): every ray
+    /// with a stereo depth. The published implementation keeps a per-scene list
+    /// (`depth_object`, e.g. parking, wall, gate), which leaves most of the geometry to the
+    /// photometric and semantic terms.
+    pub depth_classes: Vec<String>,
+}
+
+impl TrainParams {
+    /// Label ids of `depth_classes`; an unknown name is an error naming it.
+    pub fn depth_class_ids(&self) -> Result<Vec<u8>> {
+        self.depth_classes
+            .iter()
+            .map(|name| {
+                labels::by_name(name)
+                    .filter(|l| l.id != labels::SKY)
+                    .map(|l| l.id)
+                    .ok_or_else(|| {
+                        StageError::Params(format!(
+                            "`depth_classes`: `{name}` is not a KITTI-360 class name that \
+                             primitives can have (e.g. road, parking, wall, gate, building)"
+                        ))
+                    })
+            })
+            .collect()
+    }
 }
 
 impl Default for TrainParams {
@@ -46,6 +72,7 @@ impl Default for TrainParams {
             sampling: SamplingParams::default(),
             cameras: vec![0, 1],
             backend: Engine::Fused,
+            depth_classes: Vec::new(),
         }
     }
 }
@@ -142,11 +169,29 @@ impl TypedStage for Train {
             ));
         }
         p.backend.supports(&p.train.field)?;
+        p.depth_class_ids()?;
         Ok(())
     }
 
     fn run(&self, p: &TrainParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let rays = sampling::train_rays(inputs)?;
+        let mut rays = sampling::train_rays(inputs)?;
+        let depth_classes = p.depth_class_ids()?;
+        if !depth_classes.is_empty()
+            && !depth_classes.iter().any(|c| rays.prims.classes.contains(c))
+        {
+            // L_depth would silently be off.
+            return Err(StageError::Params(format!(
+                "`depth_classes`: no primitive of the scene has one of [{}] (its classes: {})",
+                p.depth_classes.join(", "),
+                rays.prims
+                    .classes
+                    .iter()
+                    .filter_map(|&c| labels::by_id(c).map(|l| l.name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )));
+        }
+        rays.restrict_depth_to(&depth_classes);
         let candidates = candidates(&rays, &p.cameras);
         if candidates.is_empty() {
             return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
@@ -318,6 +363,30 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("field_margin"));
+        }
+    }
+
+    /// `depth_classes` resolves names and refuses unknown ones by name.
+    #[test]
+    fn depth_classes_are_named_and_checked() {
+        let p = TrainParams {
+            depth_classes: vec!["parking".into(), "wall".into(), "gate".into()],
+            ..TrainParams::default()
+        };
+        assert_eq!(
+            p.depth_class_ids().unwrap(),
+            [labels::PARKING, labels::WALL, labels::GATE]
+        );
+        Train::validate(&p).unwrap();
+        let json = serde_json::to_value(&p).unwrap();
+        assert_eq!(json["depth_classes"][2], "gate");
+        for bad in ["parkng", "sky"] {
+            let q = TrainParams {
+                depth_classes: vec![bad.into()],
+                ..TrainParams::default()
+            };
+            let e = Train::validate(&q).unwrap_err().to_string();
+            assert!(e.contains("depth_classes") && e.contains(bad), "{e}");
         }
     }
 }

@@ -45,6 +45,8 @@ pub struct ImageRays<'a> {
     bvh: geometry::Bvh,
     params: IntersectParams,
     rays: u32,
+    /// Per primitive: whether a ray crossing it keeps its stereo depth (`None`: every ray).
+    depth_prims: Option<Vec<bool>>,
 }
 
 impl<'a> ImageRays<'a> {
@@ -74,7 +76,20 @@ impl<'a> ImageRays<'a> {
             images,
             params,
             rays,
+            depth_prims: None,
         })
+    }
+
+    /// Keeps the stereo depth target only on rays that cross a primitive of one of `labels`
+    /// (label ids), as the published implementation does with its per-scene `depth_object`
+    /// list; an empty list keeps every ray's depth (the paper's form).
+    pub fn restrict_depth_to(&mut self, labels: &[u8]) {
+        self.depth_prims = (!labels.is_empty()).then(|| {
+            self.primitives
+                .iter()
+                .map(|p| labels.contains(&p.label))
+                .collect()
+        });
     }
 
     /// The image of ray `r` and the pixel in it.
@@ -133,6 +148,10 @@ impl Rays for ImageRays<'_> {
             prim: &buf.prim,
             sky: buf.sky,
         };
+        let keeps_depth = self
+            .depth_prims
+            .as_ref()
+            .is_none_or(|keep| intervals.prim.iter().any(|&p| keep[p as usize]));
         Ok(SceneRay {
             origin,
             dir,
@@ -141,7 +160,7 @@ impl Rays for ImageRays<'_> {
                 rgb: [0, 1, 2].map(|c| t.rgb[p * 3 + c] as f32 / 255.0),
                 label,
                 u_mask: self.prims.ray_mask(label, &intervals),
-                depth: t.depth.map_or(0.0, |d| {
+                depth: t.depth.filter(|_| keeps_depth).map_or(0.0, |d| {
                     if d[p].is_finite() && d[p] > 0.0 {
                         d[p]
                     } else {

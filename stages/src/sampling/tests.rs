@@ -311,3 +311,73 @@ fn sky_pseudo_labels_below_the_horizon_are_dropped() {
         "{kept} kept, {dropped} dropped"
     );
 }
+
+/// `restrict_depth_to` keeps the stereo depth exactly on the rays that cross a primitive of a
+/// listed class (checked ray by ray against the traced intervals); other rays lose it, and an
+/// empty list keeps every ray's depth.
+#[test]
+fn depth_is_kept_only_on_rays_crossing_a_listed_class() {
+    use crate::geometry::primitives_from_table;
+    let scene = small_street();
+    let prims = primitives_from_table(&scene["primitives"]).unwrap();
+    let (mem, _, _) = planned(scene);
+    let all = train_rays(&mem.inputs()).unwrap();
+    let mut some = train_rays(&mem.inputs()).unwrap();
+    let listed = [labels::BUILDING, labels::CAR];
+    some.restrict_depth_to(&listed);
+    let mut unchanged = train_rays(&mem.inputs()).unwrap();
+    unchanged.restrict_depth_to(&[]);
+    let (mut a, mut b, mut c) = (RayPlan::default(), RayPlan::default(), RayPlan::default());
+    let (mut kept, mut dropped) = (0, 0);
+    for r in 0..all.len() as u32 {
+        let full = all.ray(r, &mut a).unwrap();
+        let restricted = some.ray(r, &mut b).unwrap();
+        assert_eq!(
+            unchanged.ray(r, &mut c).unwrap().targets.depth,
+            full.targets.depth
+        );
+        if full.targets.depth <= 0.0 {
+            assert_eq!(restricted.targets.depth, 0.0);
+            continue;
+        }
+        let crosses = full
+            .intervals
+            .prim
+            .iter()
+            .any(|&p| listed.contains(&prims[p as usize].label));
+        if crosses {
+            assert_eq!(restricted.targets.depth, full.targets.depth, "ray {r}");
+            kept += 1;
+        } else {
+            assert_eq!(restricted.targets.depth, 0.0, "ray {r}");
+            dropped += 1;
+        }
+        // Everything else about the ray is untouched.
+        assert_eq!(restricted.targets.label, full.targets.label);
+        assert_eq!(restricted.targets.u_mask, full.targets.u_mask);
+    }
+    assert!(kept > 20 && dropped > 20, "{kept} kept, {dropped} dropped");
+}
+
+/// A `depth_classes` list none of whose classes the scene's primitives have would switch L_depth
+/// off without a word: training refuses it, naming the parameter and the scene's classes.
+#[test]
+fn training_refuses_depth_classes_the_scene_lacks() {
+    use crate::kinds::train::{Train, TrainParams};
+    use crate::TypedStage;
+    let (mem, _, _) = planned(small_street());
+    let p = TrainParams {
+        depth_classes: vec!["rail track".into()],
+        ..TrainParams::default()
+    };
+    Train::validate(&p).unwrap();
+    let e = Train
+        .run(&p, &mem.inputs(), &crate::NoProgress)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        e.contains("depth_classes") && e.contains("rail track") && e.contains("road"),
+        "{e}"
+    );
+}
