@@ -212,6 +212,11 @@ const YAML_TOKENS: &[&str] = &[
     "é",
     "\u{202e}",
     "\u{0}",
+    // Line breaks to libyaml only (it once placed errors past the file's last line).
+    "\u{2028}",
+    "\u{2029}",
+    "\u{85}",
+    "\r",
 ];
 
 fn yaml_seeds() -> Vec<String> {

@@ -358,7 +358,7 @@ pub fn parse(file: &Path, text: &str) -> Result<Suite, ConfigError> {
         locs: Locations::scan(text),
     };
     let raw: SuiteFile = serde_yaml::from_str(text).map_err(|e| {
-        let (loc, msg) = cx.locs.serde_error(&e);
+        let (loc, msg) = cx.locs.serde_error(text, &e);
         cx.err(loc, None, format!("invalid suite: {msg}"))
     })?;
     if raw.scenes.is_empty() {

@@ -75,7 +75,7 @@ pub fn parse(file: &Path, text: &str, overrides: &[Override]) -> Result<Pipeline
         locs: Locations::scan(text),
     };
     let doc: Yaml = serde_yaml::from_str(text).map_err(|e| {
-        let (loc, msg) = cx.locs.serde_error(&e);
+        let (loc, msg) = cx.locs.serde_error(text, &e);
         cx.err(loc, None, None, format!("invalid YAML: {msg}"))
     })?;
     let top = Sections::read(&cx, &doc)?;

@@ -14,6 +14,8 @@ use super::error::{ConfigError, Loc};
 #[derive(Default)]
 pub(crate) struct Locations {
     map: HashMap<String, Loc>,
+    /// Byte offset where each `\n`-separated line starts.
+    line_starts: Vec<usize>,
 }
 
 struct Recv {
@@ -106,7 +108,30 @@ impl Locations {
         };
         // Syntax errors are reported by serde_yaml; a failed scan only loses locations.
         let _ = Parser::new_from_str(text).load(&mut recv, false);
-        Locations { map: recv.out }
+        let line_starts = std::iter::once(0)
+            .chain(text.match_indices('\n').map(|(i, _)| i + 1))
+            .collect();
+        Locations {
+            map: recv.out,
+            line_starts,
+        }
+    }
+
+    /// Line and column (1-based, columns in characters) of byte `index` of `text`.
+    ///
+    /// libyaml also breaks lines at U+0085, U+2028 and U+2029, which editors do not, so its
+    /// own line numbers can point past the file.
+    fn at_byte(&self, text: &str, index: usize) -> Loc {
+        let mut index = index.min(text.len());
+        while !text.is_char_boundary(index) {
+            index -= 1;
+        }
+        let line = self.line_starts.partition_point(|&s| s <= index).max(1);
+        let start = self.line_starts.get(line - 1).copied().unwrap_or(0);
+        Loc::File {
+            line,
+            col: text[start..index].chars().count() + 1,
+        }
     }
 
     /// Where key `path` stands (falling back to its parents).
@@ -134,11 +159,10 @@ impl Locations {
     /// Where a serde_yaml error stands, and its message without serde_yaml's own " at line X
     /// column Y" (the location goes in front). A repeated key is pointed at itself rather than
     /// at its mapping.
-    pub(crate) fn serde_error(&self, e: &serde_yaml::Error) -> (Loc, String) {
-        let loc = e.location().map_or(Loc::Unknown, |l| Loc::File {
-            line: l.line(),
-            col: l.column(),
-        });
+    pub(crate) fn serde_error(&self, text: &str, e: &serde_yaml::Error) -> (Loc, String) {
+        let loc = e
+            .location()
+            .map_or(Loc::Unknown, |l| self.at_byte(text, l.index()));
         let msg = e.to_string();
         let msg = msg.split(" at line ").next().unwrap_or(&msg).to_string();
         let loc = match msg.split_once(": duplicate entry with key \"") {
@@ -288,5 +312,34 @@ mod tests {
         // A true f64 that is not an f32 keeps its full form.
         assert_eq!(show_json(&serde_json::json!(0.3f64)), "0.3");
         assert_ne!(f64::from(0.3f32), 0.3f64);
+    }
+
+    /// Where serde_yaml fails, in the lines an editor shows (libyaml alone also breaks at
+    /// U+2028), columns counted in characters.
+    #[test]
+    fn syntax_errors_are_located_in_newline_lines() {
+        let locate = |text: &str| {
+            let e = serde_yaml::from_str::<serde_yaml::Value>(text).unwrap_err();
+            Locations::scan(text).serde_error(text, &e).0
+        };
+        // The fuzz case that libyaml placed on line 3 of a one-line text.
+        assert!(matches!(locate("®:\u{2028}🌀"), Loc::File { line: 1, .. }));
+        // An unclosed flow sequence fails at the end of the text: line 3, after 'é: x'.
+        let text = "a: 1\nb: [1, 2\né: x";
+        let Loc::File { line, col } = locate(text) else {
+            panic!("no location")
+        };
+        assert_eq!(line, 3);
+        assert!((1..=5).contains(&col), "column {col}");
+        // A byte index past the text or inside a character is clamped, not a panic.
+        let locs = Locations::scan("é\n");
+        assert!(matches!(
+            locs.at_byte("é\n", 1),
+            Loc::File { line: 1, col: 1 }
+        ));
+        assert!(matches!(
+            locs.at_byte("é\n", 99),
+            Loc::File { line: 2, col: 1 }
+        ));
     }
 }
