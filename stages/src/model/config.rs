@@ -263,9 +263,9 @@ pub struct LossWeights {
 impl Default for LossWeights {
     fn default() -> Self {
         Self {
-            fixed_2d: 1.0,
-            learned_2d: 1.0,
-            point_3d: 1.0,
+            fixed_2d: 0.1,
+            learned_2d: 0.1,
+            point_3d: 0.1,
             rgb: 1.0,
             depth: 0.1,
         }

@@ -87,6 +87,14 @@ pub fn toy_config() -> TrainConfig {
         lr: 1e-2,
         rays_per_batch: 64,
         iterations: 100,
+        // The paper's weights, whatever the pipeline's default: the toy tests were sized on them.
+        losses: super::config::LossWeights {
+            fixed_2d: 1.0,
+            learned_2d: 1.0,
+            point_3d: 1.0,
+            rgb: 1.0,
+            depth: 0.1,
+        },
         ..Default::default()
     }
 }
