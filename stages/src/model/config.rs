@@ -247,8 +247,10 @@ pub fn pe_dim(dims: usize, frequencies: usize) -> usize {
 /// Weight of each loss term; 0 disables a term (it is then not even computed).
 ///
 /// The semantic terms default to 0.1 against L_rgb: the paper writes 1, the published code 0.01.
-/// On the synthetic streets (three seeds) 0.1 gave the best depth, and the only setting where
-/// L_fixed2D improved depth on the noisy street; 0.01 lost 2-6 mIoU (README, "semantic weight").
+/// On the 1/8-scale synthetic streets (three seeds) 0.1 gave the best depth, and the only setting
+/// where L_fixed2D improved depth on the noisy street; 0.01 lost 2-6 mIoU. The weight depends on
+/// how often each pixel is drawn: at full size, where labels are still being learned, 1 scores
+/// better and the full-size pipelines set it (README, "The semantic terms' weight").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LossWeights {
