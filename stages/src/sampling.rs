@@ -156,24 +156,9 @@ pub fn place_samples(
     match p.mode {
         SamplingMode::Uniform => put(p.near, p.far, p.samples, &mut jitter),
         SamplingMode::Primitives => {
-            // Union of the ray's intervals as disjoint segments (intervals are sorted by t_in).
-            let mut segs: [(f32, f32); 64] = [(0.0, 0.0); 64];
-            let mut ns = 0;
-            for (&t_in, &t1) in iv.t_in.iter().zip(iv.t_out) {
-                let t0 = t_in.max(0.0);
-                if ns > 0 && t0 <= segs[ns - 1].1 {
-                    segs[ns - 1].1 = segs[ns - 1].1.max(t1);
-                } else if ns < segs.len() {
-                    segs[ns] = (t0, t1);
-                    ns += 1;
-                }
-            }
-            if let Some(base) = p.samples.checked_div(ns) {
-                let extra = p.samples % ns;
-                for (i, &(t0, t1)) in segs[..ns].iter().enumerate() {
-                    put(t0, t1, base + usize::from(i < extra), &mut jitter);
-                }
-            }
+            let ns = primitive_strata(iv, p.samples, &mut |t0, t1, count| {
+                put(t0, t1, count, &mut jitter)
+            });
             let [s0, s1] = iv.sky;
             if ns > 0 {
                 put(s0, s1, p.sky_samples, &mut jitter);
@@ -185,6 +170,169 @@ pub fn place_samples(
     for i in n..s_total {
         t_out[i] = last;
         delta_out[i] = 0.0;
+    }
+}
+
+/// Interval ends one ray's strata are planned in without a heap buffer (16 intervals; `k` is
+/// 10 by default, at most 255).
+const INLINE_ENDS: usize = 32;
+
+/// Splits the primitive sample budget `samples` of a ray among its intervals and calls `emit(t0,
+/// t1, count)`, in order of distance, for each run of `count` equal strata over `[t0, t1]`;
+/// returns how many non-empty intervals the ray has.
+///
+/// Each interval gets an equal share (the paper's "N per interval"), spread over it by length.
+/// The intervals' ends cut the ray into pieces over which the set of enclosing primitives is
+/// constant; a piece gets the sum of the shares of the intervals covering it, rounded by largest
+/// remainder, so a thin gate box in front of a deep garden box gets its own share instead of a
+/// sliver of the merged [gate, garden] stretch, and no stratum straddles the gate's faces. A
+/// piece rounded to no sample joins the next stratum run of its stretch (the previous one at the
+/// stretch's end), so strata still tile every covered stretch that has a sample.
+fn primitive_strata(
+    iv: &Intervals,
+    samples: usize,
+    emit: &mut impl FnMut(f32, f32, usize),
+) -> usize {
+    let n = iv
+        .t_in
+        .iter()
+        .zip(iv.t_out)
+        .filter(|(&t_in, &t1)| t1 > t_in.max(0.0))
+        .count();
+    if n == 0 || samples == 0 {
+        return n;
+    }
+    if 2 * n <= INLINE_ENDS {
+        let mut ends = [0f32; INLINE_ENDS];
+        let mut quota = [0f32; INLINE_ENDS];
+        let mut count = [0u16; INLINE_ENDS];
+        plan_strata(iv, n, samples, &mut ends, &mut quota, &mut count, emit);
+    } else {
+        // Only with `k` above 16: one buffer per ray.
+        let (mut ends, mut quota, mut count) =
+            (vec![0f32; 2 * n], vec![0f32; 2 * n], vec![0u16; 2 * n]);
+        plan_strata(iv, n, samples, &mut ends, &mut quota, &mut count, emit);
+    }
+    n
+}
+
+/// [`primitive_strata`] for a ray with `n` non-empty intervals, in buffers of at least `2 n`.
+///
+/// Rounding goes stretch first (maximal runs of covered pieces), then piece within stretch, so a
+/// stretch, whose quota is at least one interval's share, keeps a sample whenever `samples >= n`
+/// even when its pieces' quotas are each below one.
+fn plan_strata(
+    iv: &Intervals,
+    n: usize,
+    samples: usize,
+    ends: &mut [f32],
+    quota: &mut [f32],
+    count: &mut [u16],
+    emit: &mut impl FnMut(f32, f32, usize),
+) {
+    let nonempty = || {
+        iv.t_in
+            .iter()
+            .zip(iv.t_out)
+            .map(|(&t_in, &t1)| (t_in.max(0.0), t1))
+            .filter(|(t0, t1)| t1 > t0)
+    };
+    let mut ne = 0;
+    for (t0, t1) in nonempty() {
+        ends[ne] = t0;
+        ends[ne + 1] = t1;
+        ne += 2;
+    }
+    let ends = &mut ends[..ne];
+    ends.sort_unstable_by(f32::total_cmp);
+    let mut m = 0;
+    for i in 0..ends.len() {
+        if m == 0 || ends[i] > ends[m - 1] {
+            ends[m] = ends[i];
+            m += 1;
+        }
+    }
+    let (ends, pieces) = (&ends[..m], m - 1);
+    // A piece's quota: the sum over the intervals covering it of share * piece / interval
+    // (0 for a piece no interval covers: empty space).
+    let share = samples as f64 / n as f64;
+    for k in 0..pieces {
+        let (a, b) = (ends[k], ends[k + 1]);
+        quota[k] = nonempty()
+            .filter(|&(t0, t1)| t0 <= a && t1 >= b)
+            .map(|(t0, t1)| share * f64::from(b - a) / f64::from(t1 - t0))
+            .sum::<f64>() as f32;
+    }
+    // Stretches as (first piece, last piece); a stretch's whole count is kept in `count` of its
+    // first piece until its pieces are given theirs.
+    let stretch_after = |k: usize| {
+        let k = (k..pieces).find(|&j| quota[j] > 0.0)?;
+        let end = (k..pieces).take_while(|&j| quota[j] > 0.0).last()?;
+        Some((k, end))
+    };
+    let total = |k: usize, end: usize| quota[k..=end].iter().map(|&q| f64::from(q)).sum::<f64>();
+    let mut given = 0;
+    let mut at = 0;
+    while let Some((k, end)) = stretch_after(at) {
+        count[k] = total(k, end).floor() as u16;
+        given += count[k] as usize;
+        at = end + 1;
+    }
+    // Largest remainders: each sample left goes to the stretch with the largest fraction.
+    for _ in given..samples {
+        let mut best: Option<(usize, f64)> = None;
+        let mut at = 0;
+        while let Some((k, end)) = stretch_after(at) {
+            let r = total(k, end) - f64::from(count[k]);
+            if r > 0.0 && best.is_none_or(|(_, b)| r > b) {
+                best = Some((k, r));
+            }
+            at = end + 1;
+        }
+        let Some((k, _)) = best else { break };
+        count[k] += 1;
+    }
+    let mut at = 0;
+    while let Some((k, end)) = stretch_after(at) {
+        at = end + 1;
+        let whole = f64::from(count[k]);
+        if whole == 0.0 {
+            continue;
+        }
+        let scale = whole / total(k, end);
+        let mut given = 0;
+        for j in k..=end {
+            count[j] = (f64::from(quota[j]) * scale).floor() as u16;
+            given += count[j] as usize;
+        }
+        for _ in given..whole as usize {
+            let mut best: Option<(usize, f64)> = None;
+            for j in k..=end {
+                let r = f64::from(quota[j]) * scale - f64::from(count[j]);
+                if r > 0.0 && best.is_none_or(|(_, b)| r > b) {
+                    best = Some((j, r));
+                }
+            }
+            let Some((j, _)) = best else { break };
+            count[j] += 1;
+        }
+        // Pieces rounded to nothing join the next run of their stretch (the last run takes the
+        // stretch's tail).
+        let Some(last) = (k..=end).rev().find(|&j| count[j] > 0) else {
+            continue;
+        };
+        let mut start = ends[k];
+        for j in k..=last {
+            if count[j] > 0 {
+                let stop = if j == last {
+                    ends[end + 1]
+                } else {
+                    ends[j + 1]
+                };
+                emit(start, stop, count[j] as usize);
+                start = stop;
+            }
+        }
     }
 }
 

@@ -147,12 +147,21 @@ fn samples_stay_inside_primitives_and_strata_tile_them() {
     let mut rng = SplitMix64::new(7);
     let (mut t, mut d) = (vec![0.0; 8], vec![0.0; 8]);
     place_samples(&set.intervals(0), &p, Some(&mut rng), &mut t, &mut d);
-    // Union [4, 10] gets 6 strata of width 1; sky [10, 60] two of width 25.
-    for i in 0..6 {
-        assert!(t[i] >= 4.0 + i as f32 && t[i] <= 5.0 + i as f32, "{t:?}");
-        assert!((d[i] - 1.0).abs() < 1e-6);
+    // Road [4, 10] and car [5, 7] share 6 samples, 3 each, spread over each by length: the
+    // pieces [4, 5], [5, 7], [7, 10] get 0.5, 1 + 3 and 1.5, rounded to 1, 4 and 1 (the tie of
+    // remainders goes to the nearer piece); sky [10, 60] two strata of width 25.
+    let strata = [
+        (4.0, 1.0),
+        (5.0, 0.5),
+        (5.5, 0.5),
+        (6.0, 0.5),
+        (6.5, 0.5),
+        (7.0, 3.0),
+    ];
+    for (i, &(t0, w)) in strata.iter().enumerate() {
+        assert!(t[i] >= t0 && t[i] <= t0 + w, "{i}: {t:?}");
+        assert!((d[i] - w).abs() < 1e-6, "{i}: {d:?}");
     }
-    assert!(t[6] >= 10.0 && t[7] <= 60.0 && (d[6] - 25.0).abs() < 1e-5);
     let total: f32 = d.iter().sum();
     assert!(
         (total - 56.0).abs() < 1e-4,
@@ -164,6 +173,109 @@ fn samples_stay_inside_primitives_and_strata_tile_them() {
     empty.sky = vec![[0.0, 0.0]];
     place_samples(&empty.intervals(0), &p, None, &mut t, &mut d);
     assert!(d.iter().all(|&x| x == 0.0));
+}
+
+/// Samples of one ray with the given primitive intervals at stratum centres.
+fn centres(intervals: &[(f32, f32)], samples: usize) -> (Vec<f32>, Vec<f32>) {
+    let (t_in, t_out): (Vec<f32>, Vec<f32>) = intervals.iter().copied().unzip();
+    let prim: Vec<u32> = (0..intervals.len() as u32).collect();
+    let iv = Intervals {
+        t_in: &t_in,
+        t_out: &t_out,
+        prim: &prim,
+        sky: [0.0, 0.0],
+    };
+    let p = SamplingParams {
+        samples,
+        sky_samples: 0,
+        ..Default::default()
+    };
+    let (mut t, mut d) = (vec![0.0; samples], vec![0.0; samples]);
+    place_samples(&iv, &p, None, &mut t, &mut d);
+    (t, d)
+}
+
+#[test]
+fn a_thin_primitive_in_front_of_a_deep_one_gets_its_own_share() {
+    // A 0.2 m gate box overlapping the first 0.1 m of a 20 m garden box, as a side camera sees
+    // a frontage: merged into one stretch, the gate got 28 * 0.2 / 20.1 = 0.3 samples; with a
+    // share per interval it gets its 14 (7 + 7.07 over its two pieces).
+    let (t, d) = centres(&[(9.9, 10.1), (10.0, 30.0)], 28);
+    let in_gate = t.iter().filter(|&&x| (9.9..=10.1).contains(&x)).count();
+    assert_eq!(in_gate, 14, "{t:?}");
+    // No stratum straddles a face of either box.
+    for (&x, &w) in t.iter().zip(&d) {
+        let (a, b) = (x - w / 2.0, x + w / 2.0);
+        for face in [10.0f32, 10.1] {
+            assert!(
+                !(a < face - 1e-4 && b > face + 1e-4),
+                "[{a}, {b}] straddles {face}"
+            );
+        }
+    }
+    assert!((d.iter().sum::<f32>() - 20.1).abs() < 1e-3);
+}
+
+proptest::proptest! {
+    /// For any intervals: samples ascend, strata lie inside the primitives and do not overlap,
+    /// a lone interval gets its whole share, and with a sample per interval the strata tile the
+    /// union exactly.
+    #[test]
+    fn strata_tile_the_union_of_any_intervals(
+        raw in proptest::collection::vec((-2.0f32..60.0, 0.001f32..30.0), 1..14),
+        samples in 1usize..80,
+    ) {
+        let mut intervals: Vec<(f32, f32)> = raw.iter().map(|&(a, l)| (a, a + l)).collect();
+        intervals.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let (t, d) = centres(&intervals, samples);
+        let placed = d.iter().take_while(|&&w| w > 0.0).count();
+        proptest::prop_assert!(d[placed..].iter().all(|&w| w == 0.0));
+        let covered = |x: f32| intervals.iter().any(|&(a, b)| x >= a.max(0.0) - 1e-3 && x <= b + 1e-3);
+        let mut prev_end = f32::NEG_INFINITY;
+        for i in 0..placed {
+            let (a, b) = (t[i] - d[i] / 2.0, t[i] + d[i] / 2.0);
+            proptest::prop_assert!(a >= prev_end - 1e-3, "strata overlap at {i}: {t:?} {d:?}");
+            proptest::prop_assert!(covered(a) && covered(b) && covered(t[i]), "[{a}, {b}] outside");
+            prev_end = b;
+        }
+        // The union's length, clipped at 0.
+        let mut union = 0.0f64;
+        let mut cur: Option<(f32, f32)> = None;
+        for &(a, b) in &intervals {
+            let a = a.max(0.0);
+            if b <= a { continue; }
+            match cur {
+                Some((c0, c1)) if a <= c1 => cur = Some((c0, c1.max(b))),
+                _ => {
+                    if let Some((c0, c1)) = cur { union += f64::from(c1 - c0); }
+                    cur = Some((a, b));
+                }
+            }
+        }
+        if let Some((c0, c1)) = cur { union += f64::from(c1 - c0); }
+        let n = intervals.iter().filter(|&&(a, b)| b > a.max(0.0)).count();
+        let total: f64 = d.iter().map(|&w| f64::from(w)).sum();
+        if samples >= n {
+            proptest::prop_assert_eq!(placed, samples);
+            proptest::prop_assert!((total - union).abs() < 1e-3 * union.max(1.0), "{total} vs {union}");
+        } else {
+            proptest::prop_assert!(total <= union + 1e-3 * union.max(1.0));
+        }
+        // An interval meeting no other is a stretch of its own: it gets its share rounded down
+        // or up.
+        for (j, &(a, b)) in intervals.iter().enumerate() {
+            let a = a.max(0.0);
+            let alone = b > a && intervals.iter().enumerate().all(|(i, &(c, e))| {
+                i == j || e < a || c.max(0.0) > b || e <= c.max(0.0)
+            });
+            if alone {
+                let share = samples as f64 / n as f64;
+                let got = t[..placed].iter().filter(|&&x| x > a && x < b).count() as f64;
+                proptest::prop_assert!(got >= share.floor() && got <= share.ceil(),
+                    "interval {j} got {got} of share {share}");
+            }
+        }
+    }
 }
 
 #[test]
