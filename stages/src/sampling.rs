@@ -4,10 +4,11 @@
 //! depth, ray mask u(r)) and its intervals traced again when training draws it ([`ImageRays`]),
 //! or one image's rays with the plan the `intersect` stage stored ([`PlannedImage`], rendering).
 //!
-//! Samples of one ray: the union of its intervals is split into disjoint covered segments; each
-//! segment gets an equal share of the primitive sample budget, stratified within the segment,
-//! so a thin car box gets as many samples as a long road slab (as the paper's "N per
-//! interval"). `delta` of a sample is the width of its stratum, so no delta spans empty space.
+//! Samples of one ray: each primitive interval gets an equal share of the primitive sample
+//! budget (the paper's "N per interval"), spread over it by length; the intervals' ends cut the
+//! ray into pieces, each stratified with the shares of the intervals covering it, so a thin car
+//! box gets as many samples as a long road slab even inside it, and no stratum straddles a
+//! box's face. `delta` of a sample is the width of its stratum, so no delta spans empty space.
 //! The `uniform` mode (ablation) samples [near, far] evenly and ignores the intervals for
 //! placement (but not for the fixed fields).
 
@@ -42,7 +43,7 @@ pub enum SamplingMode {
 #[serde(default, deny_unknown_fields)]
 pub struct SamplingParams {
     pub mode: SamplingMode,
-    /// Samples per ray inside primitives (shared equally by the ray's covered segments).
+    /// Samples per ray inside primitives (an equal share per interval the ray crosses).
     pub samples: usize,
     /// Samples in the sky interval (when the ray has one).
     pub sky_samples: usize,
@@ -185,7 +186,7 @@ const INLINE_ENDS: usize = 32;
 /// The intervals' ends cut the ray into pieces over which the set of enclosing primitives is
 /// constant; a piece gets the sum of the shares of the intervals covering it, rounded by largest
 /// remainder, so a thin gate box in front of a deep garden box gets its own share instead of a
-/// sliver of the merged [gate, garden] stretch, and no stratum straddles the gate's faces. A
+/// sliver of the merged [gate, garden] stretch (the rule before train VERSION 11), and no stratum straddles the gate's faces. A
 /// piece rounded to no sample joins the next stratum run of its stretch (the previous one at the
 /// stretch's end), so strata still tile every covered stretch that has a sample.
 fn primitive_strata(
