@@ -76,6 +76,10 @@ pub const SCORES: ScoreSpec = ScoreSpec {
             semantic: false,
             ..pct("depth_delta_1_25_exact", "delta<1.25 vs exact depth")
         },
+        metres(
+            "depth_rmse_exact_interior",
+            "depth RMSE vs exact depth inside regions",
+        ),
     ],
     headline: "miou",
     per_run: &[
@@ -88,6 +92,7 @@ pub const SCORES: ScoreSpec = ScoreSpec {
         "depth_rmse_interior",
         "depth_rmse_exact",
         "depth_delta_1_25_exact",
+        "depth_rmse_exact_interior",
     ],
     per_baseline: &[
         "miou",
@@ -105,6 +110,7 @@ pub const SCORES: ScoreSpec = ScoreSpec {
         "depth_rmse_interior",
         "depth_rmse_exact",
         "depth_delta_1_25_exact",
+        "depth_rmse_exact_interior",
         "miou",
         "acc",
     ],
@@ -112,7 +118,7 @@ pub const SCORES: ScoreSpec = ScoreSpec {
     notes: &[
         "PQ follows the Panoptic NeRF paper: predicted segments under evaluate's min_segment_px (default 100 px) are relabelled sky and GT segments under it are void before matching",
         "depth RMSE inside regions leaves out the LiDAR pixels on a GT class boundary (a different class among the 8 neighbours), where the LiDAR (mounted apart from the camera) and the pixel, or the foreground and background a pixel straddles, disagree: about a third of the LiDAR pixels but over 90 % of the squared error of the whole-image RMSE on the synthetic street (evaluate's depth_breakdown table)",
-        "depth RMSE and delta<1.25 vs exact depth score the rendered depth against the scene's exact depth at every pixel centre within 100 m (synthetic scenes only): the geometry itself. The LiDAR metrics above measure it through a scanner mounted 0.3 m from the camera whose points land anywhere in a pixel's footprint; at 1/8 scale, where a pixel spans 8x8 full-size pixels, a point and the pixel centre often see different surfaces at depth edges, so a sharp, correct depth edge costs more RMSE than a blurred one. The `exact depth` baseline row is the scene's exact depth scored by the LiDAR metrics: the floor they set on a perfect geometry",
+        "depth RMSE and delta<1.25 vs exact depth score the rendered depth against the scene's exact depth at every pixel centre within 100 m (synthetic scenes only): the geometry itself. The LiDAR metrics above measure it through a scanner mounted 0.3 m from the camera whose points land anywhere in a pixel's footprint; at 1/8 scale, where a pixel spans 8x8 full-size pixels, a point and the pixel centre often see different surfaces at depth edges, so a sharp, correct depth edge costs more RMSE than a blurred one. Inside regions (vs exact depth) leaves out the pixels on a GT class boundary: a pixel there straddles two surfaces, its colour (an average over its footprint) is matched by a mix of both, and its one exact depth (at the centre) is one of them. The `exact depth` baseline row is the scene's exact depth scored by the LiDAR metrics: the floor they set on a perfect geometry",
         "PQ (panopticapi) scores the same maps against the same GT as panopticapi and the Cityscapes and KITTI-360 scripts do: predicted segments as they are, however small; compare with other papers in the convention they state",
     ],
 };

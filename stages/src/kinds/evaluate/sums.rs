@@ -130,6 +130,8 @@ pub(super) struct MethodSums {
     pub(super) depth_interior: Option<DepthAccumulator>,
     /// Against the scene's exact depth at every pixel centre (synthetic scenes).
     pub(super) depth_exact: Option<DepthAccumulator>,
+    /// The same off GT class boundaries: the geometry where a pixel sees one surface.
+    pub(super) depth_exact_interior: Option<DepthAccumulator>,
     pub(super) mc: Option<Consistency>,
 }
 
@@ -192,6 +194,7 @@ impl Group {
                 depth: depth_acc()?,
                 depth_interior: depth_acc()?,
                 depth_exact: depth_acc()?,
+                depth_exact_interior: depth_acc()?,
                 mc: Some(Consistency::default()),
             })
         };
@@ -232,6 +235,15 @@ impl Group {
         }
         if let Some(exact) = f.exact {
             s.depth_exact.as_mut().unwrap().add(f.depth, exact)?;
+            let interior: Vec<f32> = exact
+                .iter()
+                .zip(&f.boundary)
+                .map(|(&d, &b)| if b { 0.0 } else { d })
+                .collect();
+            s.depth_exact_interior
+                .as_mut()
+                .unwrap()
+                .add(f.depth, &interior)?;
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
@@ -306,6 +318,7 @@ impl Group {
                 ("", &s.depth),
                 ("_interior", &s.depth_interior),
                 ("_exact", &s.depth_exact),
+                ("_exact_interior", &s.depth_exact_interior),
             ] {
                 push_depth(&mut push, method, suffix, acc.as_ref().map(|d| d.result()));
             }
