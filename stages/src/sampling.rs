@@ -184,11 +184,10 @@ const INLINE_ENDS: usize = 32;
 ///
 /// Each interval gets an equal share (the paper's "N per interval"), spread over it by length.
 /// The intervals' ends cut the ray into pieces over which the set of enclosing primitives is
-/// constant; a piece gets the sum of the shares of the intervals covering it, rounded by largest
-/// remainder, so a thin gate box in front of a deep garden box gets its own share instead of a
-/// sliver of the merged [gate, garden] stretch (the rule before train VERSION 11), and no stratum straddles the gate's faces. A
-/// piece rounded to no sample joins the next stratum run of its stretch (the previous one at the
-/// stretch's end), so strata still tile every covered stretch that has a sample.
+/// constant; a piece's quota is the sum of the shares of the intervals covering it, so a thin
+/// gate box in front of a deep garden box gets its own share instead of a sliver of the merged
+/// [gate, garden] stretch (the rule before train VERSION 11), and no stratum straddles the gate's
+/// faces.
 fn primitive_strata(
     iv: &Intervals,
     samples: usize,
@@ -205,50 +204,55 @@ fn primitive_strata(
     }
     if 2 * n <= INLINE_ENDS {
         let mut ends = [0f32; INLINE_ENDS];
-        let mut quota = [0f32; INLINE_ENDS];
-        let mut count = [0u16; INLINE_ENDS];
-        plan_strata(iv, n, samples, &mut ends, &mut quota, &mut count, emit);
+        let mut quota = [0f64; INLINE_ENDS];
+        plan_strata(iv, n, samples, &mut ends, &mut quota, emit);
     } else {
         // Only with `k` above 16: one buffer per ray.
-        let (mut ends, mut quota, mut count) =
-            (vec![0f32; 2 * n], vec![0f32; 2 * n], vec![0u16; 2 * n]);
-        plan_strata(iv, n, samples, &mut ends, &mut quota, &mut count, emit);
+        let (mut ends, mut quota) = (vec![0f32; 2 * n], vec![0f64; 2 * n]);
+        plan_strata(iv, n, samples, &mut ends, &mut quota, emit);
     }
     n
 }
 
 /// [`primitive_strata`] for a ray with `n` non-empty intervals, in buffers of at least `2 n`.
 ///
-/// Rounding goes stretch first (maximal runs of covered pieces), then piece within stretch, so a
-/// stretch, whose quota is at least one interval's share, keeps a sample whenever `samples >= n`
-/// even when its pieces' quotas are each below one.
+/// Quotas become whole samples by rounding their running sums, first over the stretches
+/// (maximal runs of covered pieces), then over the pieces of each stretch: every stretch and
+/// every piece gets its quota rounded down or up, the counts add up exactly, and a stretch (whose
+/// quota is at least one interval's share) keeps a sample whenever `samples >= n`. A piece
+/// rounded to nothing joins the run before it (the first run of its stretch when none is), so
+/// strata tile every stretch that has a sample.
 fn plan_strata(
     iv: &Intervals,
     n: usize,
     samples: usize,
     ends: &mut [f32],
-    quota: &mut [f32],
-    count: &mut [u16],
+    quota: &mut [f64],
     emit: &mut impl FnMut(f32, f32, usize),
 ) {
-    let nonempty = || {
-        iv.t_in
-            .iter()
-            .zip(iv.t_out)
-            .map(|(&t_in, &t1)| (t_in.max(0.0), t1))
-            .filter(|(t0, t1)| t1 > t0)
-    };
     let mut ne = 0;
-    for (t0, t1) in nonempty() {
-        ends[ne] = t0;
-        ends[ne + 1] = t1;
-        ne += 2;
+    for (&t_in, &t1) in iv.t_in.iter().zip(iv.t_out) {
+        let t0 = t_in.max(0.0);
+        if t1 > t0 {
+            ends[ne] = t0;
+            ends[ne + 1] = t1;
+            ne += 2;
+        }
     }
     let ends = &mut ends[..ne];
-    ends.sort_unstable_by(f32::total_cmp);
-    let mut m = 0;
-    for i in 0..ends.len() {
-        if m == 0 || ends[i] > ends[m - 1] {
+    // Insertion sort: a handful of ends, nearly sorted already (intervals come by entry).
+    for i in 1..ends.len() {
+        let x = ends[i];
+        let mut j = i;
+        while j > 0 && ends[j - 1] > x {
+            ends[j] = ends[j - 1];
+            j -= 1;
+        }
+        ends[j] = x;
+    }
+    let mut m = 1;
+    for i in 1..ends.len() {
+        if ends[i] > ends[m - 1] {
             ends[m] = ends[i];
             m += 1;
         }
@@ -257,82 +261,63 @@ fn plan_strata(
     // A piece's quota: the sum over the intervals covering it of share * piece / interval
     // (0 for a piece no interval covers: empty space).
     let share = samples as f64 / n as f64;
-    for k in 0..pieces {
-        let (a, b) = (ends[k], ends[k + 1]);
-        quota[k] = nonempty()
-            .filter(|&(t0, t1)| t0 <= a && t1 >= b)
-            .map(|(t0, t1)| share * f64::from(b - a) / f64::from(t1 - t0))
-            .sum::<f64>() as f32;
-    }
-    // Stretches as (first piece, last piece); a stretch's whole count is kept in `count` of its
-    // first piece until its pieces are given theirs.
-    let stretch_after = |k: usize| {
-        let k = (k..pieces).find(|&j| quota[j] > 0.0)?;
-        let end = (k..pieces).take_while(|&j| quota[j] > 0.0).last()?;
-        Some((k, end))
-    };
-    let total = |k: usize, end: usize| quota[k..=end].iter().map(|&q| f64::from(q)).sum::<f64>();
-    let mut given = 0;
-    let mut at = 0;
-    while let Some((k, end)) = stretch_after(at) {
-        count[k] = total(k, end).floor() as u16;
-        given += count[k] as usize;
-        at = end + 1;
-    }
-    // Largest remainders: each sample left goes to the stretch with the largest fraction.
-    for _ in given..samples {
-        let mut best: Option<(usize, f64)> = None;
-        let mut at = 0;
-        while let Some((k, end)) = stretch_after(at) {
-            let r = total(k, end) - f64::from(count[k]);
-            if r > 0.0 && best.is_none_or(|(_, b)| r > b) {
-                best = Some((k, r));
+    quota[..pieces].fill(0.0);
+    for (&t_in, &t1) in iv.t_in.iter().zip(iv.t_out) {
+        let t0 = t_in.max(0.0);
+        if t1 > t0 {
+            let per_metre = share / f64::from(t1 - t0);
+            let mut k = ends.iter().position(|&e| e >= t0).unwrap_or(m);
+            while k < pieces && ends[k] < t1 {
+                quota[k] += per_metre * f64::from(ends[k + 1] - ends[k]);
+                k += 1;
             }
-            at = end + 1;
         }
-        let Some((k, _)) = best else { break };
-        count[k] += 1;
     }
-    let mut at = 0;
-    while let Some((k, end)) = stretch_after(at) {
-        at = end + 1;
-        let whole = f64::from(count[k]);
-        if whole == 0.0 {
+    // Nearest whole number of a non-negative sum (`as` truncates: no libm call per piece).
+    let round = |x: f64, cap: usize| ((x + 0.5) as usize).min(cap);
+    let (mut cum_all, mut given_all) = (0.0, 0);
+    let mut k = 0;
+    while k < pieces {
+        if quota[k] == 0.0 {
+            k += 1;
             continue;
         }
-        let scale = whole / total(k, end);
-        let mut given = 0;
-        for j in k..=end {
-            count[j] = (f64::from(quota[j]) * scale).floor() as u16;
-            given += count[j] as usize;
+        let first = k;
+        let mut total = 0.0;
+        while k < pieces && quota[k] > 0.0 {
+            total += quota[k];
+            k += 1;
         }
-        for _ in given..whole as usize {
-            let mut best: Option<(usize, f64)> = None;
-            for j in k..=end {
-                let r = f64::from(quota[j]) * scale - f64::from(count[j]);
-                if r > 0.0 && best.is_none_or(|(_, b)| r > b) {
-                    best = Some((j, r));
-                }
-            }
-            let Some((j, _)) = best else { break };
-            count[j] += 1;
-        }
-        // Pieces rounded to nothing join the next run of their stretch (the last run takes the
-        // stretch's tail).
-        let Some(last) = (k..=end).rev().find(|&j| count[j] > 0) else {
+        let last = k - 1;
+        cum_all += total;
+        let upto = round(cum_all, samples).max(given_all);
+        let whole = upto - given_all;
+        given_all = upto;
+        if whole == 0 {
             continue;
-        };
-        let mut start = ends[k];
-        for j in k..=last {
-            if count[j] > 0 {
-                let stop = if j == last {
-                    ends[end + 1]
-                } else {
-                    ends[j + 1]
+        }
+        let scale = whole as f64 / total;
+        let (mut cum, mut given) = (0.0, 0);
+        let mut run: Option<(f32, usize)> = None;
+        for j in first..=last {
+            cum += quota[j] * scale;
+            let upto = round(cum, whole).max(given);
+            let c = upto - given;
+            given = upto;
+            if c > 0 {
+                let start = match run {
+                    Some((s, rc)) => {
+                        emit(s, ends[j], rc);
+                        ends[j]
+                    }
+                    None => ends[first],
                 };
-                emit(start, stop, count[j] as usize);
-                start = stop;
+                run = Some((start, c));
             }
+        }
+        // Rounding can leave the last sample of a stretch unplaced: the last run takes it.
+        if let Some((s, rc)) = run {
+            emit(s, ends[last + 1], rc + (whole - given));
         }
     }
 }

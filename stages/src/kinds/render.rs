@@ -219,7 +219,7 @@ fn plan_params(plan: &Table) -> Result<IntersectParams> {
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 8;
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const INPUTS: &'static [InputSlot] = &[

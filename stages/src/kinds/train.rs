@@ -128,7 +128,7 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 11;
+    const VERSION: u32 = 12;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[

@@ -485,8 +485,7 @@ fn training_refuses_depth_classes_the_scene_lacks() {
     Train::validate(&p).unwrap();
     let e = Train
         .run(&p, &mem.inputs(), &crate::NoProgress)
-        .err()
-        .expect("refused")
+        .expect_err("refused")
         .to_string();
     assert!(
         e.contains("depth_classes") && e.contains("rail track") && e.contains("road"),
