@@ -522,7 +522,7 @@ mod tests {
         let spec = stages::kinds::find("evaluate").unwrap().scores().unwrap();
         assert_eq!(
             units(&metrics(spec, spec.per_run)),
-            "mIoU, Acc, PQ, PQ (panopticapi), delta<1.25 and delta<1.25 vs exact depth in %, depth RMSE, depth RMSE inside regions and depth RMSE vs exact depth in m"
+            "mIoU, Acc, PQ, PQ (panopticapi), delta<1.25 and delta<1.25 vs exact depth in %, depth RMSE, depth RMSE inside regions, depth RMSE vs exact depth and depth RMSE vs exact depth inside regions in m"
         );
     }
 }
