@@ -118,10 +118,12 @@ fn metrics(ws: &Workspace, stage: &str) -> serde_json::Value {
 }
 
 /// `metrics.json` less what only a scene with an exact depth has: the `exact_depth` rows and
-/// the `*_exact` metrics, everywhere in the tree.
+/// the `*_exact` and `*_exact_interior` metrics, everywhere in the tree.
 fn without_exact_depth(v: &mut serde_json::Value) {
     if let serde_json::Value::Object(m) = v {
-        m.retain(|k, _| k != "exact_depth" && !k.ends_with("_exact"));
+        m.retain(|k, _| {
+            k != "exact_depth" && !k.ends_with("_exact") && !k.ends_with("_exact_interior")
+        });
         m.values_mut().for_each(without_exact_depth);
     }
 }
