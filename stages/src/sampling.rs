@@ -193,12 +193,7 @@ fn primitive_strata(
     samples: usize,
     emit: &mut impl FnMut(f32, f32, usize),
 ) -> usize {
-    let n = iv
-        .t_in
-        .iter()
-        .zip(iv.t_out)
-        .filter(|(&t_in, &t1)| t1 > t_in.max(0.0))
-        .count();
+    let n = sampled_intervals(iv).count();
     if n == 0 || samples == 0 {
         return n;
     }
@@ -212,6 +207,15 @@ fn primitive_strata(
         plan_strata(iv, n, samples, &mut ends, &mut quota, emit);
     }
     n
+}
+
+/// The intervals of `iv` that samples go into: clipped to start at the camera, empty ones left out.
+fn sampled_intervals<'a>(iv: &'a Intervals) -> impl Iterator<Item = (f32, f32)> + 'a {
+    iv.t_in
+        .iter()
+        .zip(iv.t_out)
+        .map(|(&t_in, &t1)| (t_in.max(0.0), t1))
+        .filter(|(t0, t1)| t1 > t0)
 }
 
 /// [`primitive_strata`] for a ray with `n` non-empty intervals, in buffers of at least `2 n`.
@@ -231,13 +235,10 @@ fn plan_strata(
     emit: &mut impl FnMut(f32, f32, usize),
 ) {
     let mut ne = 0;
-    for (&t_in, &t1) in iv.t_in.iter().zip(iv.t_out) {
-        let t0 = t_in.max(0.0);
-        if t1 > t0 {
-            ends[ne] = t0;
-            ends[ne + 1] = t1;
-            ne += 2;
-        }
+    for (t0, t1) in sampled_intervals(iv) {
+        ends[ne] = t0;
+        ends[ne + 1] = t1;
+        ne += 2;
     }
     let ends = &mut ends[..ne];
     // Insertion sort: a handful of ends, nearly sorted already (intervals come by entry).
@@ -262,15 +263,12 @@ fn plan_strata(
     // (0 for a piece no interval covers: empty space).
     let share = samples as f64 / n as f64;
     quota[..pieces].fill(0.0);
-    for (&t_in, &t1) in iv.t_in.iter().zip(iv.t_out) {
-        let t0 = t_in.max(0.0);
-        if t1 > t0 {
-            let per_metre = share / f64::from(t1 - t0);
-            let mut k = ends.iter().position(|&e| e >= t0).unwrap_or(m);
-            while k < pieces && ends[k] < t1 {
-                quota[k] += per_metre * f64::from(ends[k + 1] - ends[k]);
-                k += 1;
-            }
+    for (t0, t1) in sampled_intervals(iv) {
+        let per_metre = share / f64::from(t1 - t0);
+        let mut k = ends.iter().position(|&e| e >= t0).unwrap_or(m);
+        while k < pieces && ends[k] < t1 {
+            quota[k] += per_metre * f64::from(ends[k + 1] - ends[k]);
+            k += 1;
         }
     }
     // Nearest whole number of a non-negative sum (`as` truncates: no libm call per piece).

@@ -221,11 +221,7 @@ impl Group {
         s.confusion.add(f.gsem, f.ours)?;
         s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
         if let Some(l) = f.lidar {
-            let interior: Vec<f32> = l
-                .iter()
-                .zip(&f.boundary)
-                .map(|(&d, &b)| if b { 0.0 } else { d })
-                .collect();
+            let interior = off_boundary(l, &f.boundary);
             s.depth.as_mut().unwrap().add(f.depth, l)?;
             s.depth_interior.as_mut().unwrap().add(f.depth, &interior)?;
             if let Some(exact) = f.exact {
@@ -235,15 +231,10 @@ impl Group {
         }
         if let Some(exact) = f.exact {
             s.depth_exact.as_mut().unwrap().add(f.depth, exact)?;
-            let interior: Vec<f32> = exact
-                .iter()
-                .zip(&f.boundary)
-                .map(|(&d, &b)| if b { 0.0 } else { d })
-                .collect();
             s.depth_exact_interior
                 .as_mut()
                 .unwrap()
-                .add(f.depth, &interior)?;
+                .add(f.depth, &off_boundary(exact, &f.boundary))?;
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
@@ -330,6 +321,15 @@ impl Group {
             push_depth(&mut push, EXACT_DEPTH, "_interior", Some(interior));
         }
     }
+}
+
+/// A reference depth with the pixels on a GT class boundary set to 0 (no reference there).
+fn off_boundary(depth: &[f32], boundary: &[bool]) -> Vec<f32> {
+    depth
+        .iter()
+        .zip(boundary)
+        .map(|(&d, &b)| if b { 0.0 } else { d })
+        .collect()
 }
 
 /// `depth_rmse{suffix}` and `depth_delta_1_25{suffix}` of `method`.
