@@ -519,7 +519,14 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     );
     let n = all["pixels"].as_u64().unwrap();
     assert!(n > 0);
-    for group in ["distance", "class", "boundary", "rendered", "fixed field"] {
+    for group in [
+        "distance",
+        "class",
+        "boundary",
+        "rendered",
+        "fixed field",
+        "pseudo label",
+    ] {
         let bins: Vec<_> = rows.iter().filter(|r| r["group"] == group).collect();
         let px: u64 = bins.iter().map(|r| r["pixels"].as_u64().unwrap()).sum();
         let share: f64 = bins

@@ -24,6 +24,9 @@ pub struct TrainImage<'a> {
     /// Per pixel: primitive intervals the `intersect` stage kept (0 = pure sky).
     pub hits: Vec<u8>,
     pub targets: Targets<'a>,
+    /// Per pixel: on an edge band of the pseudo labels ([`ImageRays::mark_label_edges`]);
+    /// `None`: not marked (no pixel counts as an edge).
+    pub label_edges: Option<Vec<bool>>,
 }
 
 /// The per-pixel targets of one image: RGB (bytes), and pseudo labels and stereo depth where the
@@ -90,6 +93,19 @@ impl<'a> ImageRays<'a> {
                 .map(|p| labels.contains(&p.label))
                 .collect()
         });
+    }
+
+    /// Marks the pixels of every pseudo-labelled image that lie within `band` of a label edge
+    /// (a fraction of the image's width, at least one pixel: Chebyshev distance), the rays
+    /// `label_edge` reports.
+    pub fn mark_label_edges(&mut self, band: f32) {
+        for im in &mut self.images {
+            im.label_edges = im.targets.labels.map(|l| {
+                let w = im.cam.width as usize;
+                let radius = ((band * w as f32).round() as usize).max(1);
+                label_edge_mask(l, w, radius)
+            });
+        }
     }
 
     /// The image of ray `r` and the pixel in it.
@@ -160,6 +176,7 @@ impl Rays for ImageRays<'_> {
                 rgb: [0, 1, 2].map(|c| t.rgb[p * 3 + c] as f32 / 255.0),
                 label,
                 u_mask: self.prims.ray_mask(label, &intervals),
+                label_edge: im.label_edges.as_ref().is_some_and(|m| m[p]),
                 depth: t.depth.filter(|_| keeps_depth).map_or(0.0, |d| {
                     if d[p].is_finite() && d[p] > 0.0 {
                         d[p]
@@ -171,6 +188,52 @@ impl Rays for ImageRays<'_> {
             intervals,
         })
     }
+}
+
+/// Whether pixel `p` of a row-major label map `width` wide has a pixel of another label in
+/// its 8-neighbourhood (inside the image).
+pub fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
+    let height = labels.len() / width;
+    let (x, y) = (p % width, p / width);
+    let l = labels[p];
+    (y.saturating_sub(1)..(y + 2).min(height))
+        .any(|ny| (x.saturating_sub(1)..(x + 2).min(width)).any(|nx| labels[ny * width + nx] != l))
+}
+
+/// Per pixel of a row-major label map `width` wide: whether a pixel of another label lies
+/// within Chebyshev distance `radius` (>= 1). The pixels within `radius - 1` of a pixel that
+/// has another label in its 8-neighbourhood: box dilations along rows, then columns.
+pub fn label_edge_mask(labels: &[u8], width: usize, radius: usize) -> Vec<bool> {
+    let height = labels.len() / width;
+    let edge: Vec<bool> = (0..labels.len())
+        .map(|p| on_label_edge(labels, width, p))
+        .collect();
+    let r = radius.max(1) - 1;
+    if r == 0 {
+        return edge;
+    }
+    // Counts of edge pixels in a sliding window, along one axis of a strided line.
+    let dilate = |src: &[bool],
+                  dst: &mut [bool],
+                  len: usize,
+                  lines: usize,
+                  at: &dyn Fn(usize, usize) -> usize| {
+        let mut prefix = vec![0u32; len + 1];
+        for line in 0..lines {
+            for i in 0..len {
+                prefix[i + 1] = prefix[i] + src[at(line, i)] as u32;
+            }
+            for i in 0..len {
+                let (a, b) = (i.saturating_sub(r), (i + r + 1).min(len));
+                dst[at(line, i)] = prefix[b] > prefix[a];
+            }
+        }
+    };
+    let mut rows = vec![false; labels.len()];
+    dilate(&edge, &mut rows, width, height, &|y, x| y * width + x);
+    let mut out = vec![false; labels.len()];
+    dilate(&rows, &mut out, height, width, &|x, y| y * width + x);
+    out
 }
 
 /// A per-image input table with its (frame, camera) -> row index.
@@ -259,6 +322,7 @@ pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
             first_ray: first,
             hits: hits.row(r).to_vec(),
             targets: image_targets(key, w, h, &images, &pseudo, stereo.as_ref())?,
+            label_edges: None,
         });
         first_ray += n as u64;
     }

@@ -25,6 +25,7 @@ fn toy() -> RaySet {
         rgb: vec![[0.5; 3]],
         label: vec![1],
         u_mask: vec![true],
+        label_edge: vec![],
         depth: vec![0.0],
     }
 }
@@ -491,4 +492,66 @@ fn training_refuses_depth_classes_the_scene_lacks() {
         e.contains("depth_classes") && e.contains("rail track") && e.contains("road"),
         "{e}"
     );
+}
+
+/// `on_label_edge` against a brute-force scan of the 8-neighbourhood, on random small maps
+/// (one-pixel, one-row and one-column images included).
+#[test]
+fn label_edges_match_a_brute_force_scan() {
+    let mut rng = crate::rng::SplitMix64::new(3);
+    for (w, h) in [(1, 1), (1, 5), (6, 1), (7, 5), (4, 4)] {
+        for _ in 0..20 {
+            let map: Vec<u8> = (0..w * h).map(|_| (rng.unit() * 2.5) as u8).collect();
+            for p in 0..w * h {
+                let (x, y) = ((p % w) as i64, (p / w) as i64);
+                let mut want = false;
+                for dy in -1..=1i64 {
+                    for dx in -1..=1i64 {
+                        let (nx, ny) = (x + dx, y + dy);
+                        if nx >= 0 && ny >= 0 && nx < w as i64 && ny < h as i64 {
+                            want |= map[(ny * w as i64 + nx) as usize] != map[p];
+                        }
+                    }
+                }
+                assert_eq!(
+                    super::on_label_edge(&map, w, p),
+                    want,
+                    "{w}x{h} map {map:?} pixel {p}"
+                );
+            }
+        }
+    }
+}
+
+/// `label_edge_mask` against a brute-force scan of the window of each radius.
+#[test]
+fn label_edge_bands_match_a_brute_force_window() {
+    let mut rng = crate::rng::SplitMix64::new(5);
+    for (w, h) in [(1, 1), (9, 1), (1, 7), (11, 6), (13, 13)] {
+        for radius in 1..=3usize {
+            for _ in 0..10 {
+                // Few large regions: most pixels sit far from an edge.
+                let (a, b) = (rng.unit() * w as f32, rng.unit() * h as f32);
+                let map: Vec<u8> = (0..w * h)
+                    .map(|p| ((p % w) as f32 > a) as u8 + 2 * (((p / w) as f32) > b) as u8)
+                    .collect();
+                let got = super::label_edge_mask(&map, w, radius);
+                for p in 0..w * h {
+                    let (x, y) = ((p % w) as i64, (p / w) as i64);
+                    let r = radius as i64;
+                    let want = (-r..=r).any(|dy| {
+                        (-r..=r).any(|dx| {
+                            let (nx, ny) = (x + dx, y + dy);
+                            nx >= 0
+                                && ny >= 0
+                                && nx < w as i64
+                                && ny < h as i64
+                                && map[(ny * w as i64 + nx) as usize] != map[p]
+                        })
+                    });
+                    assert_eq!(got[p], want, "{w}x{h} radius {radius} pixel {p} of {map:?}");
+                }
+            }
+        }
+    }
 }

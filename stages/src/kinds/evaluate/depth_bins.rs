@@ -42,7 +42,8 @@ pub(super) fn class_boundary(gsem: &[u8], width: usize) -> Vec<bool> {
 /// The bins of LiDAR pixel `i` of image `c`: all pixels; its distance band; its GT class;
 /// whether it lies on a GT class boundary (a different GT class among its 8 neighbours);
 /// whether a depth was rendered (opacity > 0.5); how many classes the fixed field has at the
-/// LiDAR point (the primitives containing it).
+/// LiDAR point (the primitives containing it); whether the pixel's pseudo label (`pseudo`,
+/// None: the image has none) is right or wrong, on a class boundary or inside a region.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn depth_bin_keys(
     c: &CameraRow,
@@ -51,10 +52,11 @@ pub(super) fn depth_bin_keys(
     rendered: f32,
     gsem: &[u8],
     boundary: bool,
+    pseudo: Option<u8>,
     prims: &[Primitive],
     bvh: &Bvh,
     inside: &mut Vec<u32>,
-) -> [BinKey; 6] {
+) -> [BinKey; 7] {
     let w = c.cam.width as usize;
     let (x, y) = (i % w, i / w);
     let g = f64::from(lidar);
@@ -102,5 +104,12 @@ pub(super) fn depth_bin_keys(
             },
         ),
         (5, fixed.0, "fixed field", fixed.1),
+        match (pseudo.filter(|&l| l != labels::UNLABELED), boundary) {
+            (None, _) => (6, 4, "pseudo label", "no pseudo label"),
+            (Some(l), true) if l == class => (6, 0, "pseudo label", "right, on a class boundary"),
+            (Some(_), true) => (6, 1, "pseudo label", "wrong, on a class boundary"),
+            (Some(l), false) if l == class => (6, 2, "pseudo label", "right, inside a region"),
+            (Some(_), false) => (6, 3, "pseudo label", "wrong, inside a region"),
+        },
     ]
 }

@@ -252,7 +252,8 @@ impl Evaluation {
             for (i, (&l, &d)) in lidar.iter().zip(f.depth).enumerate() {
                 if l > 0.0 && l.is_finite() {
                     let b = f.boundary[i];
-                    let keys = depth_bin_keys(c, i, l, d, f.gsem, b, prims, bvh, &mut inside);
+                    let ps = f.pseudo.map(|m| m[i]);
+                    let keys = depth_bin_keys(c, i, l, d, f.gsem, b, ps, prims, bvh, &mut inside);
                     self.depth_bins.add(&keys, d, l);
                 }
             }
@@ -407,7 +408,7 @@ impl Evaluation {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 7;
+    const VERSION: u32 = 8;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
