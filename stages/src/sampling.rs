@@ -15,7 +15,7 @@
 mod images;
 mod rays;
 
-pub use images::{label_edge_mask, on_label_edge, train_rays, ImageRays, Targets, TrainImage};
+pub use images::{train_rays, ImageRays, Targets, TrainImage};
 use rayon::prelude::*;
 pub use rays::{
     pixel_ray, Intervals, PlannedImage, PrimInfo, RaySet, RayTargets, Rays, SceneRay, StoredRays,

@@ -103,7 +103,7 @@ impl<'a> ImageRays<'a> {
             im.label_edges = im.targets.labels.map(|l| {
                 let w = im.cam.width as usize;
                 let radius = ((band * w as f32).round() as usize).max(1);
-                label_edge_mask(l, w, radius)
+                labels::label_edge_mask(l, w, radius)
             });
         }
     }
@@ -188,52 +188,6 @@ impl Rays for ImageRays<'_> {
             intervals,
         })
     }
-}
-
-/// Whether pixel `p` of a row-major label map `width` wide has a pixel of another label in
-/// its 8-neighbourhood (inside the image).
-pub fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
-    let height = labels.len() / width;
-    let (x, y) = (p % width, p / width);
-    let l = labels[p];
-    (y.saturating_sub(1)..(y + 2).min(height))
-        .any(|ny| (x.saturating_sub(1)..(x + 2).min(width)).any(|nx| labels[ny * width + nx] != l))
-}
-
-/// Per pixel of a row-major label map `width` wide: whether a pixel of another label lies
-/// within Chebyshev distance `radius` (>= 1). The pixels within `radius - 1` of a pixel that
-/// has another label in its 8-neighbourhood: box dilations along rows, then columns.
-pub fn label_edge_mask(labels: &[u8], width: usize, radius: usize) -> Vec<bool> {
-    let height = labels.len() / width;
-    let edge: Vec<bool> = (0..labels.len())
-        .map(|p| on_label_edge(labels, width, p))
-        .collect();
-    let r = radius.max(1) - 1;
-    if r == 0 {
-        return edge;
-    }
-    // Counts of edge pixels in a sliding window, along one axis of a strided line.
-    let dilate = |src: &[bool],
-                  dst: &mut [bool],
-                  len: usize,
-                  lines: usize,
-                  at: &dyn Fn(usize, usize) -> usize| {
-        let mut prefix = vec![0u32; len + 1];
-        for line in 0..lines {
-            for i in 0..len {
-                prefix[i + 1] = prefix[i] + src[at(line, i)] as u32;
-            }
-            for i in 0..len {
-                let (a, b) = (i.saturating_sub(r), (i + r + 1).min(len));
-                dst[at(line, i)] = prefix[b] > prefix[a];
-            }
-        }
-    };
-    let mut rows = vec![false; labels.len()];
-    dilate(&edge, &mut rows, width, height, &|y, x| y * width + x);
-    let mut out = vec![false; labels.len()];
-    dilate(&rows, &mut out, height, width, &|x, y| y * width + x);
-    out
 }
 
 /// A per-image input table with its (frame, camera) -> row index.

@@ -21,22 +21,7 @@ pub(super) const DEPTH_BANDS: [(f64, &str); 4] = [
 /// Per pixel of a `width`-wide GT label map: whether a different class is among its 8
 /// neighbours (a class boundary, where LiDAR and camera, or foreground and background, meet).
 pub(super) fn class_boundary(gsem: &[u8], width: usize) -> Vec<bool> {
-    let h = gsem.len() / width.max(1);
-    (0..gsem.len())
-        .map(|i| {
-            let (x, y) = ((i % width) as i64, (i / width) as i64);
-            (-1..=1).any(|dy| {
-                (-1..=1).any(|dx| {
-                    let (nx, ny) = (x + dx, y + dy);
-                    nx >= 0
-                        && ny >= 0
-                        && (nx as usize) < width
-                        && (ny as usize) < h
-                        && gsem[ny as usize * width + nx as usize] != gsem[i]
-                })
-            })
-        })
-        .collect()
+    labels::label_edge_mask(gsem, width.max(1), 1)
 }
 
 /// The bins of LiDAR pixel `i` of image `c`: all pixels; its distance band; its GT class;
