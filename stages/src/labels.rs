@@ -143,40 +143,12 @@ pub fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
         .any(|ny| (x.saturating_sub(1)..(x + 2).min(width)).any(|nx| labels[ny * width + nx] != l))
 }
 
-/// Per pixel of a row-major label map `width` wide: whether a pixel of another label lies
-/// within Chebyshev distance `radius` (>= 1). The pixels within `radius - 1` of a pixel that
-/// has another label in its 8-neighbourhood: box dilations along rows, then columns.
-pub fn label_edge_mask(labels: &[u8], width: usize, radius: usize) -> Vec<bool> {
-    let height = labels.len() / width;
-    let edge: Vec<bool> = (0..labels.len())
+/// Per pixel of a row-major label map `width` wide: [`on_label_edge`] (a class boundary, where
+/// foreground and background, or LiDAR and camera, meet).
+pub fn label_edges(labels: &[u8], width: usize) -> Vec<bool> {
+    (0..labels.len())
         .map(|p| on_label_edge(labels, width, p))
-        .collect();
-    let r = radius.max(1) - 1;
-    if r == 0 {
-        return edge;
-    }
-    // Counts of edge pixels in a sliding window, along one axis of a strided line.
-    let dilate = |src: &[bool],
-                  dst: &mut [bool],
-                  len: usize,
-                  lines: usize,
-                  at: &dyn Fn(usize, usize) -> usize| {
-        let mut prefix = vec![0u32; len + 1];
-        for line in 0..lines {
-            for i in 0..len {
-                prefix[i + 1] = prefix[i] + src[at(line, i)] as u32;
-            }
-            for i in 0..len {
-                let (a, b) = (i.saturating_sub(r), (i + r + 1).min(len));
-                dst[at(line, i)] = prefix[b] > prefix[a];
-            }
-        }
-    };
-    let mut rows = vec![false; labels.len()];
-    dilate(&edge, &mut rows, width, height, &|y, x| y * width + x);
-    let mut out = vec![false; labels.len()];
-    dilate(&rows, &mut out, height, width, &|x, y| y * width + x);
-    out
+        .collect()
 }
 
 #[cfg(test)]
@@ -231,6 +203,7 @@ mod tests {
         for (w, h) in [(1, 1), (1, 5), (6, 1), (7, 5), (4, 4)] {
             for _ in 0..20 {
                 let map: Vec<u8> = (0..w * h).map(|_| (rng.unit() * 2.5) as u8).collect();
+                let edges = label_edges(&map, w);
                 for p in 0..w * h {
                     let (x, y) = ((p % w) as i64, (p / w) as i64);
                     let mut want = false;
@@ -243,43 +216,10 @@ mod tests {
                         }
                     }
                     assert_eq!(
-                        on_label_edge(&map, w, p),
-                        want,
+                        (edges[p], on_label_edge(&map, w, p)),
+                        (want, want),
                         "{w}x{h} map {map:?} pixel {p}"
                     );
-                }
-            }
-        }
-    }
-
-    /// `label_edge_mask` against a brute-force scan of the window of each radius.
-    #[test]
-    fn label_edge_bands_match_a_brute_force_window() {
-        let mut rng = crate::rng::SplitMix64::new(5);
-        for (w, h) in [(1, 1), (9, 1), (1, 7), (11, 6), (13, 13)] {
-            for radius in 1..=3usize {
-                for _ in 0..10 {
-                    // Few large regions: most pixels sit far from an edge.
-                    let (a, b) = (rng.unit() * w as f32, rng.unit() * h as f32);
-                    let map: Vec<u8> = (0..w * h)
-                        .map(|p| ((p % w) as f32 > a) as u8 + 2 * (((p / w) as f32) > b) as u8)
-                        .collect();
-                    let got = label_edge_mask(&map, w, radius);
-                    for p in 0..w * h {
-                        let (x, y) = ((p % w) as i64, (p / w) as i64);
-                        let r = radius as i64;
-                        let want = (-r..=r).any(|dy| {
-                            (-r..=r).any(|dx| {
-                                let (nx, ny) = (x + dx, y + dy);
-                                nx >= 0
-                                    && ny >= 0
-                                    && nx < w as i64
-                                    && ny < h as i64
-                                    && map[(ny * w as i64 + nx) as usize] != map[p]
-                            })
-                        });
-                        assert_eq!(got[p], want, "{w}x{h} radius {radius} pixel {p} of {map:?}");
-                    }
                 }
             }
         }

@@ -121,8 +121,6 @@ pub struct SampleBatch {
     pub label: Vec<i64>,
     /// [R] u(r) as 0/1.
     pub u_mask: Vec<f32>,
-    /// [R] 1 where the pixel lies on an edge of the pseudo-label map.
-    pub label_edge: Vec<f32>,
     /// [R] stereo z-depth target (0 = none) and the ray's z scale (z = t * z_scale).
     pub depth: Vec<f32>,
     pub z_scale: Vec<f32>,
@@ -441,7 +439,6 @@ pub fn sample_batch(
         b.target_rgb.extend(part.target_rgb);
         b.label.extend(part.label);
         b.u_mask.extend(part.u_mask);
-        b.label_edge.extend(part.label_edge);
         b.depth.extend(part.depth);
         b.z_scale.extend(part.z_scale);
     }
@@ -496,7 +493,6 @@ fn sample_into(
         target_rgb: vec![0.0; r_n * 3 * t_n],
         label: vec![-1; r_n * t_n],
         u_mask: vec![0.0; r_n * t_n],
-        label_edge: vec![0.0; r_n * t_n],
         depth: vec![0.0; r_n * t_n],
         z_scale: vec![0.0; r_n],
     };
@@ -538,7 +534,6 @@ fn sample_into(
             tg.label as i64
         };
         b.u_mask[i] = if tg.u_mask { 1.0 } else { 0.0 };
-        b.label_edge[i] = if tg.label_edge { 1.0 } else { 0.0 };
         b.depth[i] = tg.depth;
     }
     Ok(b)

@@ -24,9 +24,6 @@ pub struct TrainImage<'a> {
     /// Per pixel: primitive intervals the `intersect` stage kept (0 = pure sky).
     pub hits: Vec<u8>,
     pub targets: Targets<'a>,
-    /// Per pixel: on an edge band of the pseudo labels ([`ImageRays::mark_label_edges`]);
-    /// `None`: not marked (no pixel counts as an edge).
-    pub label_edges: Option<Vec<bool>>,
 }
 
 /// The per-pixel targets of one image: RGB (bytes), and pseudo labels and stereo depth where the
@@ -93,19 +90,6 @@ impl<'a> ImageRays<'a> {
                 .map(|p| labels.contains(&p.label))
                 .collect()
         });
-    }
-
-    /// Marks the pixels of every pseudo-labelled image that lie within `band` of a label edge
-    /// (a fraction of the image's width, at least one pixel: Chebyshev distance), the rays
-    /// `label_edge` reports.
-    pub fn mark_label_edges(&mut self, band: f32) {
-        for im in &mut self.images {
-            im.label_edges = im.targets.labels.map(|l| {
-                let w = im.cam.width as usize;
-                let radius = ((band * w as f32).round() as usize).max(1);
-                labels::label_edge_mask(l, w, radius)
-            });
-        }
     }
 
     /// The image of ray `r` and the pixel in it.
@@ -176,7 +160,6 @@ impl Rays for ImageRays<'_> {
                 rgb: [0, 1, 2].map(|c| t.rgb[p * 3 + c] as f32 / 255.0),
                 label,
                 u_mask: self.prims.ray_mask(label, &intervals),
-                label_edge: im.label_edges.as_ref().is_some_and(|m| m[p]),
                 depth: t.depth.filter(|_| keeps_depth).map_or(0.0, |d| {
                     if d[p].is_finite() && d[p] > 0.0 {
                         d[p]
@@ -276,7 +259,6 @@ pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
             first_ray: first,
             hits: hits.row(r).to_vec(),
             targets: image_targets(key, w, h, &images, &pseudo, stereo.as_ref())?,
-            label_edges: None,
         });
         first_ray += n as u64;
     }

@@ -132,9 +132,6 @@ pub struct RayTargets {
     pub label: u16,
     /// The ray mask u(r): the pseudo label is the class of a primitive the ray hits, or sky.
     pub u_mask: bool,
-    /// The pixel lies on an edge of the pseudo-label map (a pixel of its 8-neighbourhood has
-    /// another label), where 2D networks make most of their mistakes.
-    pub label_edge: bool,
     /// Stereo z-depth, 0 = none.
     pub depth: f32,
 }
@@ -144,7 +141,6 @@ impl RayTargets {
         rgb: [0.0; 3],
         label: NONE,
         u_mask: false,
-        label_edge: false,
         depth: 0.0,
     };
 }
@@ -238,8 +234,6 @@ pub struct RaySet {
     pub rgb: Vec<[f32; 3]>,
     pub label: Vec<u16>,
     pub u_mask: Vec<bool>,
-    /// Per ray, as [`RayTargets::label_edge`]; empty = no edges.
-    pub label_edge: Vec<bool>,
     pub depth: Vec<f32>,
 }
 
@@ -279,7 +273,6 @@ impl Rays for RaySet {
                 rgb: self.rgb[r],
                 label: self.label[r],
                 u_mask: self.u_mask[r],
-                label_edge: self.label_edge.get(r).copied().unwrap_or(false),
                 depth: self.depth[r],
             },
         })

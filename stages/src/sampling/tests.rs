@@ -25,7 +25,6 @@ fn toy() -> RaySet {
         rgb: vec![[0.5; 3]],
         label: vec![1],
         u_mask: vec![true],
-        label_edge: vec![],
         depth: vec![0.0],
     }
 }

@@ -18,12 +18,6 @@ pub(super) const DEPTH_BANDS: [(f64, &str); 4] = [
     (40.0, ">= 40 m"),
 ];
 
-/// Per pixel of a `width`-wide GT label map: whether a different class is among its 8
-/// neighbours (a class boundary, where LiDAR and camera, or foreground and background, meet).
-pub(super) fn class_boundary(gsem: &[u8], width: usize) -> Vec<bool> {
-    labels::label_edge_mask(gsem, width.max(1), 1)
-}
-
 /// The bins of LiDAR pixel `i` of image `c`: all pixels; its distance band; its GT class;
 /// whether it lies on a GT class boundary (a different GT class among its 8 neighbours);
 /// whether a depth was rendered (opacity > 0.5); how many classes the fixed field has at the

@@ -34,7 +34,7 @@ mod json;
 mod params;
 mod sums;
 
-use depth_bins::{class_boundary, depth_bin_keys, BinKey};
+use depth_bins::{depth_bin_keys, BinKey};
 use images::{check_size, index_images, map_f32, map_u16, map_u8, Image};
 pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json};
 pub use params::{EvaluateParams, PANOPTICAPI_SUFFIX, PQ_CONVENTIONS};
@@ -224,7 +224,7 @@ impl Evaluation {
         let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
         let gsem = map_u8(g, "gt_semantic", "labels")?;
         let f = FrameMaps {
-            boundary: class_boundary(gsem, g.width),
+            boundary: labels::label_edges(gsem, g.width),
             gsem,
             ginst: map_u16(gi, "gt_instance", "instances")?,
             ours: map_u8(m, "label_maps", "semantic")?,

@@ -365,7 +365,7 @@ pub(super) struct FrameMaps<'a> {
     pub(super) lidar: Option<&'a [f32]>,
     /// The scene's exact depth (z-depth as ours', 0 = none), where the scene has one.
     pub(super) exact: Option<&'a [f32]>,
-    /// Per pixel: on a GT class boundary ([`class_boundary`]).
+    /// Per pixel: on a GT class boundary ([`crate::labels::label_edges`]).
     pub(super) boundary: Vec<bool>,
 }
 
