@@ -54,6 +54,11 @@ pub const BUILT_IN: &[(&str, &str, &str)] = &[
         "benches/suites/seeds.yaml",
         include_str!("../../benches/suites/seeds.yaml"),
     ),
+    (
+        "growth",
+        "benches/suites/growth.yaml",
+        include_str!("../../benches/suites/growth.yaml"),
+    ),
 ];
 
 fn yes() -> bool {
@@ -522,8 +527,8 @@ mod tests {
             let s = load(name).unwrap().unwrap();
             assert_eq!(&s.name, name);
             assert!(s.variants.iter().any(|v| v.name == "complete"));
-            if s.variants.len() > 1 {
-                // An ablation: the paper's figures beside it.
+            if s.variants.iter().any(|v| v.name == "no_fixed_2d") {
+                // The paper's ablation: its figures beside it.
                 assert!(s.paper.is_some(), "{name}: the paper's ablation figures");
                 let complete = s.variants.iter().find(|v| v.name == "complete").unwrap();
                 assert_eq!(complete.paper.as_deref(), Some("5.23 / 95.1 / 81.4"));
