@@ -43,50 +43,6 @@ pub struct TrainParams {
     /// (`depth_object`, e.g. parking, wall, gate), which leaves most of the geometry to the
     /// photometric and semantic terms.
     pub depth_classes: Vec<String>,
-    /// How far the two 2D label terms may pull on the geometry (they always train the learned
-    /// semantic head).
-    pub label_geometry: LabelGeometry,
-}
-
-/// When the 2D label terms shape the geometry. The default is the paper's: always.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct LabelGeometry {
-    /// Passes over the training rays after which the pull fades out, linearly over as many
-    /// passes again (0 = never). Each pass shows every ray its pseudo label again, and a field
-    /// fine enough to follow single rays fits the wrong ones too: on the 1/8-scale noisier
-    /// street (6.6 passes in 1700 steps, 23 in 6000) the depth of boundary pixels whose pseudo
-    /// label is wrong worsens with the passes; at full size a run makes well under one pass.
-    pub epochs: f32,
-}
-
-impl LabelGeometry {
-    fn validate(&self) -> Result<()> {
-        if !(self.epochs.is_finite() && self.epochs >= 0.0) {
-            return Err(StageError::Params(
-                "`label_geometry.epochs` must be finite and >= 0".into(),
-            ));
-        }
-        Ok(())
-    }
-
-    /// The factor on the pull after `epochs` passes over the training rays.
-    fn at(&self, epochs: f64) -> f32 {
-        if self.epochs == 0.0 {
-            return 1.0;
-        }
-        (2.0 - epochs / f64::from(self.epochs)).clamp(0.0, 1.0) as f32
-    }
-
-    /// Per ray of a batch of `rays`: the factor on the pull (empty while it is 1).
-    fn factors(&self, epochs: f64, rays: usize) -> Vec<f32> {
-        let now = self.at(epochs);
-        if now == 1.0 {
-            Vec::new()
-        } else {
-            vec![now; rays]
-        }
-    }
 }
 
 impl TrainParams {
@@ -117,7 +73,6 @@ impl Default for TrainParams {
             cameras: vec![0, 1],
             backend: Engine::Fused,
             depth_classes: Vec::new(),
-            label_geometry: LabelGeometry::default(),
         }
     }
 }
@@ -208,7 +163,6 @@ impl TypedStage for Train {
     fn validate(p: &TrainParams) -> Result<()> {
         p.train.validate()?;
         p.sampling.validate()?;
-        p.label_geometry.validate()?;
         if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
             return Err(StageError::Params(
                 "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
@@ -258,13 +212,8 @@ impl TypedStage for Train {
             let jitter =
                 SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                     .next_u64();
-            let epochs = (it * batch) as f64 / candidates.len() as f64;
             sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
-                .map(|b| {
-                    let mut rb = RayBatch::from_samples(&b);
-                    rb.targets.label_geometry = p.label_geometry.factors(epochs, b.rays);
-                    rb
-                })
+                .map(|b| RayBatch::from_samples(&b))
                 .map_err(|e| TrainError::Batch(e.message().to_string()))
         };
         fit(trainer.as_mut(), iters, next_batch, |losses| {
@@ -376,33 +325,6 @@ mod tests {
             bounds_max: hi,
             ..PrimInfo::default()
         }
-    }
-
-    /// The label terms' pull: 1 until `epochs`, then linearly to 0 at twice that; the
-    /// default (the paper's) leaves every batch without factors.
-    #[test]
-    fn the_label_pull_fades_after_its_epochs() {
-        assert!(LabelGeometry::default().factors(1e6, 4).is_empty());
-        let g = LabelGeometry { epochs: 4.0 };
-        g.validate().unwrap();
-        for (e, want) in [
-            (0.0, 1.0),
-            (4.0, 1.0),
-            (5.0, 0.75),
-            (6.0, 0.5),
-            (8.0, 0.0),
-            (80.0, 0.0),
-        ] {
-            assert!((g.at(e) - want).abs() < 1e-6, "epoch {e}: {}", g.at(e));
-        }
-        assert!(g.factors(3.0, 2).is_empty());
-        assert_eq!(g.factors(6.0, 2), vec![0.5, 0.5]);
-        let bad = LabelGeometry { epochs: f32::NAN };
-        assert!(bad
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("label_geometry.epochs"));
     }
 
     /// A street's far terrain reaches 450 m; cameras drive x in 0..20 at y = 0, z = 1.6.

@@ -39,10 +39,6 @@ pub struct RayTargets {
     pub labels: Vec<i32>,
     /// u(r): 1 iff the pseudo label equals the class of a primitive the ray hits, or is sky.
     pub ray_mask: Vec<f32>,
-    /// Per ray, a factor in [0, 1] on the two 2D label terms' pull on the geometry (their
-    /// gradient into the weights; the learned semantic head still learns the label); empty =
-    /// 1 everywhere (the paper).
-    pub label_geometry: Vec<f32>,
     /// Stereo depth along the ray (same units as `t_mid`); ignored where `depth_valid` is false.
     pub depth: Vec<f32>,
     pub depth_valid: Vec<bool>,
@@ -131,25 +127,11 @@ pub fn is_one_hot(p: &[f32]) -> bool {
 }
 
 impl RayTargets {
-    /// Factor on the 2D label terms' pull on the geometry for ray `r`.
-    pub fn label_geometry_of(&self, r: usize) -> f32 {
-        self.label_geometry.get(r).copied().unwrap_or(1.0)
-    }
-
     /// Checks lengths and values against `rays` rays of `classes` classes.
     pub fn validate(&self, rays: usize, classes: usize) -> Result<(), String> {
         for (name, len, want) in [
             ("labels", self.labels.len(), rays),
             ("ray_mask", self.ray_mask.len(), rays),
-            (
-                "label_geometry",
-                self.label_geometry.len(),
-                if self.label_geometry.is_empty() {
-                    0
-                } else {
-                    rays
-                },
-            ),
             ("depth", self.depth.len(), rays),
             ("depth_valid", self.depth_valid.len(), rays),
             ("rgb", self.rgb.len(), rays * 3),
@@ -178,11 +160,6 @@ impl RayTargets {
         RayTargets {
             labels: gather(&self.labels, indices, 1),
             ray_mask: gather(&self.ray_mask, indices, 1),
-            label_geometry: if self.label_geometry.is_empty() {
-                Vec::new()
-            } else {
-                gather(&self.label_geometry, indices, 1)
-            },
             depth: gather(&self.depth, indices, 1),
             depth_valid: gather(&self.depth_valid, indices, 1),
             rgb: gather(&self.rgb, indices, 3),
@@ -209,7 +186,6 @@ impl RayBatch {
             targets: RayTargets {
                 labels: b.label.iter().map(|&l| l as i32).collect(),
                 ray_mask: b.u_mask.clone(),
-                label_geometry: Vec::new(),
                 depth: b
                     .depth
                     .iter()

@@ -5,7 +5,6 @@
 
 use serde_json::Value;
 
-use super::batch::RayBatch;
 use super::burn::Backend;
 use super::composite::{composite_ray, LABEL_STOP_T};
 use super::config::{FieldConfig, FieldSpec, LossWeights, TrainConfig};
@@ -596,91 +595,5 @@ fn every_engine_takes_the_global_norm_of_a_full_size_table() {
                 w.total
             );
         }
-    }
-}
-
-/// A batch's `label_geometry` factors scale the 2D label terms' pull on the geometry and nothing
-/// else, in every engine: L_fixed2D's gradient (it shapes only the density) scales with the
-/// factor, and L_learned2D's gradient into the semantic head does not change while the
-/// geometry's does; the loss values never change.
-#[test]
-fn label_geometry_factors_scale_only_the_label_terms_pull_on_the_geometry() {
-    let only = |fixed_2d: f32, learned_2d: f32, factor: f32| {
-        let config = TrainConfig {
-            losses: LossWeights {
-                fixed_2d,
-                learned_2d,
-                point_3d: 0.0,
-                rgb: 0.0,
-                depth: 0.0,
-            },
-            ..toy_config()
-        };
-        let mut batch = toy_scene();
-        batch.targets.label_geometry = vec![factor; batch.samples.rays];
-        (config, batch)
-    };
-    let norm = |g: &[NamedWeight]| -> f64 {
-        g.iter()
-            .flat_map(|w| &w.values)
-            .map(|&v| (v as f64).powi(2))
-            .sum::<f64>()
-            .sqrt()
-    };
-    for engine in Engine::usable() {
-        let grads = |(config, batch): (TrainConfig, RayBatch)| {
-            let spec = spec_for(&config);
-            let start = lively(params::initial(&spec), 5);
-            engine
-                .trainer_from(&config, spec, start)
-                .unwrap()
-                .gradients(&batch)
-                .unwrap()
-        };
-        let full = grads(only(1.0, 0.0, 1.0));
-        let full_norm = norm(&full.grads);
-        assert!(full_norm > 1e-4, "{engine}: L_fixed2D has a gradient");
-        for factor in [0.5f32, 0.0] {
-            let got = grads(only(1.0, 0.0, factor));
-            assert_eq!(got.terms, full.terms, "{engine}: the loss does not change");
-            for (a, b) in got.grads.iter().zip(&full.grads) {
-                for (x, y) in a.values.iter().zip(&b.values) {
-                    assert!(
-                        (x - factor * y).abs() <= 1e-5 * full_norm as f32,
-                        "{engine}: factor {factor}, {}: {x} vs {factor} x {y}",
-                        a.name
-                    );
-                }
-            }
-        }
-        let learned = grads(only(0.0, 1.0, 1.0));
-        let head_only = grads(only(0.0, 1.0, 0.0));
-        assert_eq!(head_only.terms, learned.terms, "{engine}");
-        let (mut head, mut geometry) = (0, 0);
-        for (a, b) in head_only.grads.iter().zip(&learned.grads) {
-            let diff = norm(std::slice::from_ref(a)) - norm(std::slice::from_ref(b));
-            let scale = norm(std::slice::from_ref(b)).max(1e-6);
-            if a.name.starts_with("semantic.") {
-                head += 1;
-                assert!(
-                    a.values
-                        .iter()
-                        .zip(&b.values)
-                        .all(|(x, y)| (x - y).abs() <= 1e-4 * scale as f32),
-                    "{engine}: {} changed without the pull on the geometry",
-                    a.name
-                );
-            } else if a.name.starts_with("trunk") && diff.abs() > 1e-3 * scale {
-                geometry += 1;
-            }
-        }
-        assert!(
-            head > 0,
-            "{engine}: the semantic head's last layer is there"
-        );
-        assert!(
-            geometry > 0,
-            "{engine}: the trunk's gradient lost the density's share"
-        );
     }
 }

@@ -32,8 +32,6 @@ struct BatchTensors {
     label_one_hot: Tensor<2>,
     labelled: Tensor<1>,
     learned_mask: Tensor<1>,
-    /// Factor on the 2D label terms' gradient into the weights; None = 1 everywhere.
-    label_geometry: Option<Tensor<1>>,
     depth: Tensor<1>,
     depth_valid: Tensor<1>,
     rgb: Tensor<2>,
@@ -61,8 +59,6 @@ impl BatchTensors {
             .zip(&t.ray_mask)
             .map(|(a, b)| if use_ray_mask { a * b } else { *a })
             .collect();
-        let geometry: Vec<f32> = (0..r).map(|i| t.label_geometry_of(i)).collect();
-        let label_geometry = geometry.iter().any(|&g| g != 1.0).then(|| t1(geometry));
         let valid: Vec<f32> = t.depth_valid.iter().map(|&v| v as u8 as f32).collect();
         let depth: Vec<f32> = t
             .depth
@@ -81,7 +77,6 @@ impl BatchTensors {
             label_one_hot: t2(one_hot, [r, c]),
             labelled: t1(labelled),
             learned_mask: t1(learned),
-            label_geometry,
             depth: t1(depth),
             depth_valid: t1(valid),
             rgb: t2(t.rgb.clone(), [r, 3]),
@@ -114,10 +109,6 @@ fn losses(
     let out = field.forward(&input, &heads);
     let density = out.density.reshape([r, n]); // [rays, samples]
     let w = render_weights(density.clone(), bt.deltas);
-    let w_label = match &bt.label_geometry {
-        Some(g) => w.with_gradient_scaled(g.clone()),
-        None => w.clone(),
-    };
     let logits = out.logits.map(|l| l.reshape([r, n, c])); // [rays, samples, classes]
     let sky = c - 1;
     terms
@@ -125,17 +116,13 @@ fn losses(
         .map(|&term| {
             let value = match term {
                 LossTerm::Fixed2d => loss::label_nll(
-                    render_semantics(&w_label, bt.fixed.clone(), sky),
+                    render_semantics(&w, bt.fixed.clone(), sky),
                     bt.label_one_hot.clone(),
                     bt.labelled.clone(),
                     config.label_eps,
                 ),
                 LossTerm::Learned2d => loss::label_nll(
-                    render_semantics(
-                        &w_label,
-                        softmax(logits.clone().expect("semantics head"), 2),
-                        sky,
-                    ),
+                    render_semantics(&w, softmax(logits.clone().expect("semantics head"), 2), sky),
                     bt.label_one_hot.clone(),
                     bt.learned_mask.clone(),
                     config.label_eps,

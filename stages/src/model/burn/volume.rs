@@ -45,24 +45,6 @@ pub fn render_weights(density: Tensor<2>, deltas: Tensor<2>) -> RenderWeights {
     RenderWeights { weights, opacity }
 }
 
-impl RenderWeights {
-    /// The same weights with their gradient scaled per ray by `factor` (`[rays]`): the value
-    /// is `w f + detach(w) (1 - f)`.
-    pub fn with_gradient_scaled(&self, factor: Tensor<1>) -> RenderWeights {
-        let rays = factor.dims()[0];
-        let keep = factor.clone().neg().add_scalar(1.0);
-        let mix2 = |t: &Tensor<2>| {
-            t.clone() * factor.clone().reshape([rays, 1])
-                + t.clone().detach() * keep.clone().reshape([rays, 1])
-        };
-        RenderWeights {
-            weights: mix2(&self.weights),
-            opacity: self.opacity.clone() * factor.clone()
-                + self.opacity.clone().detach() * keep.clone(),
-        }
-    }
-}
-
 /// `sum_i w_i v_i` for per-sample vectors.
 ///
 /// # Shapes

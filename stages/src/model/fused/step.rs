@@ -220,9 +220,8 @@ impl Work {
             let label = t.labels[r];
             let sky_live = label >= 0 && label as usize == sky && st.remainder_live;
             let sky_term = if sky_live { 1.0 } else { 0.0 };
-            let geometry = t.label_geometry_of(r);
             let cf = if label >= 0 && w[0] != 0.0 {
-                -w[0] / scale.fixed / (st.shat_label + config.label_eps) * geometry
+                -w[0] / scale.fixed / (st.shat_label + config.label_eps)
             } else {
                 0.0
             };
@@ -255,7 +254,7 @@ impl Work {
                     g_w += cf * (fixed[l] - sky_term);
                     if heads.semantics {
                         let p = &self.probs[li * c..(li + 1) * c];
-                        g_w += cl * geometry * (p[l] - sky_term);
+                        g_w += cl * (p[l] - sky_term);
                         // dS_l/dz_k = w p_l (delta_lk - p_k)
                         let a = cl * wi * p[l];
                         if a != 0.0 {
