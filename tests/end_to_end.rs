@@ -92,8 +92,11 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
     let exact = frame_camera_rows(&ws, "scene", "gt_depth", Some("depth"));
     let lidar = frame_camera_rows(&ws, "scene", "lidar_depth", Some("depth"));
     let gt_semantic = frame_camera_rows(&ws, "scene", "gt_semantic", Some("labels"));
+    let pseudo = frame_camera_rows(&ws, "scene", "pseudo_labels", Some("labels"));
     let (mut ours_sq, mut ours_n, mut floor_sq, mut floor_n) = (0f64, 0u64, 0f64, 0u64);
     let (mut inside_sq, mut inside_n) = (0f64, 0u64);
+    // The depth breakdown's LiDAR pixels on a class boundary whose pseudo label is wrong.
+    let (mut wrong_sq, mut wrong_n) = (0f64, 0u64);
     for (key, &width) in &eval_keys {
         let e = &exact[key];
         // Off a class boundary: all 8 neighbours (inside the image) have the pixel's GT class.
@@ -120,13 +123,37 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
                 }
             }
         }
-        for (&g, &l) in e.iter().zip(lidar.get(key).into_iter().flatten()) {
+        for (i, (&g, &l)) in e
+            .iter()
+            .zip(lidar.get(key).into_iter().flatten())
+            .enumerate()
+        {
             if l > 0.0 && l < 100.0 {
                 floor_sq += (g as f64 - l as f64).powi(2);
                 floor_n += 1;
+                let p = pseudo.get(key).map_or(0.0, |p| p[i]);
+                if p != 0.0 && p != sem[i] && !inside(i) {
+                    let d = depth[key][i];
+                    let d = if d.is_finite() { d as f64 } else { 0.0 };
+                    wrong_sq += (d - l as f64).powi(2);
+                    wrong_n += 1;
+                }
             }
         }
     }
+    let wrong = metrics["depth_breakdown"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["group"] == "pseudo label" && r["bin"] == "wrong, on a class boundary")
+        .expect("the breakdown has the wrong-pseudo-label boundary bin");
+    assert!(wrong_n > 0);
+    assert_eq!(wrong["pixels"].as_u64().unwrap(), wrong_n, "{wrong}");
+    let rmse = (wrong_sq / wrong_n as f64).sqrt();
+    assert!(
+        (wrong["rmse"].as_f64().unwrap() - rmse).abs() < 1e-6,
+        "{wrong} vs {rmse}"
+    );
     assert!(ours_n > 0 && floor_n > 0 && inside_n > 0 && inside_n < ours_n);
     for (method, metric, expected) in [
         (

@@ -146,6 +146,9 @@ pub fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
 /// Per pixel of a row-major label map `width` wide: [`on_label_edge`] (a class boundary, where
 /// foreground and background, or LiDAR and camera, meet).
 pub fn label_edges(labels: &[u8], width: usize) -> Vec<bool> {
+    if width == 0 {
+        return vec![false; labels.len()];
+    }
     (0..labels.len())
         .map(|p| on_label_edge(labels, width, p))
         .collect()
