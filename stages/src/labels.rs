@@ -135,7 +135,7 @@ pub fn is_paper_thing(id: u8) -> bool {
 
 /// Whether pixel `p` of a row-major label map `width` wide has a pixel of another label in
 /// its 8-neighbourhood (inside the image).
-pub fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
+fn on_label_edge(labels: &[u8], width: usize, p: usize) -> bool {
     let height = labels.len() / width;
     let (x, y) = (p % width, p / width);
     let l = labels[p];
