@@ -18,8 +18,8 @@ use crate::model::{
     fit, weights, BatchOrder, Engine, FieldSpec, LossTerm, LossTerms, ModelInfo, RayBatch,
     TrainConfig,
 };
-use crate::rng::SplitMix64;
-use crate::sampling::{self, ImageRays, PrimInfo, SamplingParams};
+use crate::rng::{mix, SplitMix64};
+use crate::sampling::{self, ImageRays, JitteredRays, PrimInfo, SamplingParams};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
 use crate::{labels, tables};
 
@@ -128,7 +128,7 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 12;
+    const VERSION: u32 = 13;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -212,7 +212,17 @@ impl TypedStage for Train {
             let jitter =
                 SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                     .next_u64();
-            sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
+            let batch = if p.train.pixel_jitter > 0.0 {
+                let jittered = JitteredRays {
+                    rays: &rays,
+                    seed: mix(jitter),
+                    width: p.train.pixel_jitter as f64,
+                };
+                sampling::sample_batch(&jittered, &ids, &p.sampling, Some(jitter))
+            } else {
+                sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
+            };
+            batch
                 .map(|b| RayBatch::from_samples(&b))
                 .map_err(|e| TrainError::Batch(e.message().to_string()))
         };

@@ -352,6 +352,16 @@ pub struct TrainConfig {
     /// labelled geometry lies near the cameras: spread over 950 m, the grid's finest cells
     /// were 1.9 m wide, too coarse for a wall or a gate. 0 = the primitives' bounds whole.
     pub field_margin: f32,
+    /// Cast each training ray through a random point of a window of this width (in pixels,
+    /// 0..=1) around its pixel's centre, drawn anew every time the ray is drawn; the targets
+    /// stay the pixel's and rendering keeps the centres. At the centre alone (0) every ray
+    /// comes back identical, and over many passes the 2D label terms fit the pseudo labels'
+    /// boundary mistakes ray by ray, carving the geometry (the noisier 1/8-scale street, seed
+    /// 1, exact-depth RMSE 2.91 -> 3.17 m from 1700 to 6000 steps). Seed 1, 1700 -> 6000
+    /// steps, m / mIoU: 0.25: 2.86 / 82.2 -> 2.88 / 82.8, and on `street0` at 1700 2.73 m / 89.5
+    /// against 2.72 / 89.6; 0.5: 2.75 / 81.5 -> 2.89 / 83.0, `street0` 2.77 / 87.5; 1 (three
+    /// seeds): 2.82 / 80.3 -> 2.77 / 81.0, `street0` 3.06 / 83.9 against 2.70 / 89.2. Hence 0.25.
+    pub pixel_jitter: f32,
 }
 
 impl Default for TrainConfig {
@@ -372,6 +382,7 @@ impl Default for TrainConfig {
             seed: 0,
             field_margin: 50.0,
             label_eps: 0.3,
+            pixel_jitter: 0.25,
         }
     }
 }
@@ -393,6 +404,12 @@ impl TrainConfig {
             return Err(invalid(format!(
                 "label_eps = {} must be in (0, 1]",
                 self.label_eps
+            )));
+        }
+        if !(self.pixel_jitter.is_finite() && (0.0..=1.0).contains(&self.pixel_jitter)) {
+            return Err(invalid(format!(
+                "pixel_jitter = {} must be in [0, 1] (pixels)",
+                self.pixel_jitter
             )));
         }
         if !(self.field_margin.is_finite() && self.field_margin >= 0.0) {
@@ -461,6 +478,21 @@ mod tests {
             ..Default::default()
         };
         assert!(bad.validate().unwrap_err().to_string().contains("lr"));
+        for jitter in [-0.1, 1.5, f32::NAN] {
+            let bad = TrainConfig {
+                pixel_jitter: jitter,
+                ..Default::default()
+            };
+            let e = bad.validate().unwrap_err().to_string();
+            assert!(e.contains("pixel_jitter"), "{e}");
+        }
+        for jitter in [0.0, 1.0] {
+            let ok = TrainConfig {
+                pixel_jitter: jitter,
+                ..Default::default()
+            };
+            ok.validate().unwrap();
+        }
     }
 
     #[test]

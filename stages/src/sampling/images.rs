@@ -11,6 +11,7 @@ use arrow::record_batch::RecordBatch;
 use super::rays::{pixel_ray_f64, ray_f32, Intervals, PrimInfo, RayTargets, Rays, SceneRay, NONE};
 use crate::geometry::{self, Primitive};
 use crate::intervals::{may_see_sky, IntersectParams, RayPlan};
+use crate::rng::{mix, SplitMix64};
 use crate::stage::{Inputs, Result, StageError};
 use crate::{labels, tables};
 
@@ -114,23 +115,50 @@ impl Rays for ImageRays<'_> {
         self.rays as usize
     }
     fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>> {
+        self.ray_at(r, None, buf)
+    }
+}
+
+impl ImageRays<'_> {
+    /// Ray `r` through the point `offset` (in pixels, each in [0, 1)) of its pixel; `None`: the
+    /// pixel's centre, the ray the plan was traced with, whose interval count is checked
+    /// against the plan. An offset ray that leaves the lens or misses every primitive the
+    /// centre ray crosses falls back to the centre ray (its targets are the pixel's).
+    pub fn ray_at<'s>(
+        &'s self,
+        r: u32,
+        offset: Option<[f64; 2]>,
+        buf: &'s mut RayPlan,
+    ) -> Result<SceneRay<'s>> {
         let (im, p) = self.locate(r);
         let w = im.cam.width;
         let (x, y) = (p as u32 % w, p as u32 / w);
-        let (ray, z_scale) = pixel_ray_f64(&im.cam, x, y)?;
-        buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
+        let offset_ray = offset.and_then(|[du, dv]| {
+            let (ray, d_cam) = im.cam.ray_and_dir_cam(x as f64 + du, y as f64 + dv)?;
+            buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
+            (!buf.t_in.is_empty() || im.hits[p] == 0)
+                .then(|| (ray, im.cam.depth_scale(d_cam) as f32))
+        });
+        let (ray, z_scale) = match offset_ray {
+            Some(r) => r,
+            None => {
+                let (ray, z_scale) = pixel_ray_f64(&im.cam, x, y)?;
+                buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
+                if buf.t_in.len() != im.hits[p] as usize {
+                    return Err(StageError::Input(format!(
+                        "ray_intervals does not match the scene: pixel ({x}, {y}) of frame {} \
+                         camera {} has {} intervals there but crosses {} primitive intervals \
+                         now (was the `intersect` stage run on other primitives or cameras?)",
+                        im.frame,
+                        im.camera,
+                        im.hits[p],
+                        buf.t_in.len()
+                    )));
+                }
+                (ray, z_scale)
+            }
+        };
         let (origin, dir) = ray_f32(&ray);
-        if buf.t_in.len() != im.hits[p] as usize {
-            return Err(StageError::Input(format!(
-                "ray_intervals does not match the scene: pixel ({x}, {y}) of frame {} camera {} \
-                 has {} intervals there but crosses {} primitive intervals now (was the \
-                 `intersect` stage run on other primitives or cameras?)",
-                im.frame,
-                im.camera,
-                im.hits[p],
-                buf.t_in.len()
-            )));
-        }
         let t = &im.targets;
         let mut label = t.labels.map_or(NONE, |l| self.prims.label_class(l[p]));
         // A pseudo label of sky on a ray below the horizon is the 2D network's mistake: no
@@ -354,4 +382,36 @@ fn image_targets<'a>(
         labels: labels_row,
         depth: depth_row,
     })
+}
+
+/// The rays of an [`ImageRays`] each cast through a random point of a `width`-pixel window
+/// around its pixel's centre (the point a hash of `seed` and the ray id; a new `seed` per batch
+/// draws new points). The targets stay the pixel's: where a pixel straddles a class boundary no
+/// ray's label can be met exactly, which keeps training from carving the geometry to fit one
+/// wrong pseudo label ray by ray.
+pub struct JitteredRays<'r, 'a> {
+    pub rays: &'r ImageRays<'a>,
+    pub seed: u64,
+    /// Window width in pixels, 0..=1 (1: the whole pixel).
+    pub width: f64,
+}
+
+impl JitteredRays<'_, '_> {
+    /// The point of ray `r`'s pixel it is cast through, each coordinate in [0, 1).
+    pub fn offset(&self, r: u32) -> [f64; 2] {
+        let mut g = SplitMix64::new(self.seed ^ mix(r as u64));
+        [0, 1].map(|_| 0.5 + self.width * (g.unit() as f64 - 0.5))
+    }
+}
+
+impl Rays for JitteredRays<'_, '_> {
+    fn prims(&self) -> &PrimInfo {
+        &self.rays.prims
+    }
+    fn len(&self) -> usize {
+        self.rays.len()
+    }
+    fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>> {
+        self.rays.ray_at(r, Some(self.offset(r)), buf)
+    }
 }

@@ -492,3 +492,91 @@ fn training_refuses_depth_classes_the_scene_lacks() {
         "{e}"
     );
 }
+
+/// A jittered ray goes through a point of its own pixel (projected back, to f32 rounding), is
+/// traced anew there (its intervals are those of a trace through that point), keeps its
+/// pixel's targets, and falls back to the pixel's centre ray where the point sees no
+/// primitive; the offset (0.5, 0.5) is the centre ray itself, and the points depend on the seed.
+#[test]
+fn jittered_rays_pass_through_their_own_pixel() {
+    use crate::geometry::{primitives_from_table, Bvh};
+    let scene = small_street();
+    let prims = primitives_from_table(&scene["primitives"]).unwrap();
+    let bvh = Bvh::build(&prims);
+    let (mem, _, _) = planned(scene);
+    let traced = train_rays(&mem.inputs()).unwrap();
+    let (a, b) = (
+        JitteredRays {
+            rays: &traced,
+            seed: 7,
+            width: 1.0,
+        },
+        JitteredRays {
+            rays: &traced,
+            seed: 8,
+            width: 1.0,
+        },
+    );
+    let (mut buf, mut centre_buf, mut own) =
+        (RayPlan::default(), RayPlan::default(), RayPlan::default());
+    let (mut moved, mut other_intervals, mut fell_back, mut seeds_differ) = (0, 0, 0, 0);
+    for r in 0..traced.len() as u32 {
+        let (im, p) = traced.locate(r);
+        if im.hits[p] == 0 {
+            continue;
+        }
+        let (x, y) = (p as u32 % im.cam.width, p as u32 / im.cam.width);
+        let centre = traced.ray(r, &mut centre_buf).unwrap();
+        let same = traced.ray_at(r, Some([0.5, 0.5]), &mut buf).unwrap();
+        assert_eq!((same.origin, same.dir), (centre.origin, centre.dir));
+        let off = a.offset(r);
+        assert!(off.iter().all(|o| (0.0..1.0).contains(o)), "{off:?}");
+        seeds_differ += usize::from(off != b.offset(r));
+        let half = JitteredRays { width: 0.5, ..a }.offset(r);
+        assert!(half.iter().all(|o| (0.25..0.75).contains(o)), "{half:?}");
+        // A corner of the pixel every 7th ray: the most likely to leave the primitives.
+        let off = if r % 7 == 0 { [0.0, 0.0] } else { off };
+        let ray = traced.ray_at(r, Some(off), &mut buf).unwrap();
+        assert_eq!(ray.targets.rgb, centre.targets.rgb, "ray {r}");
+        assert_eq!(ray.targets.depth, centre.targets.depth, "ray {r}");
+        assert!(ray.intervals.hits_anything(), "ray {r} crosses nothing");
+        let through = im
+            .cam
+            .ray(x as f64 + off[0], y as f64 + off[1])
+            .expect("pinhole");
+        own.trace(&prims, &bvh, &through, &IntersectParams::default());
+        if own.t_in.is_empty() {
+            assert_eq!(
+                (ray.origin, ray.dir),
+                (centre.origin, centre.dir),
+                "ray {r}"
+            );
+            fell_back += 1;
+            continue;
+        }
+        assert_eq!(ray.intervals.t_in, &own.t_in[..], "ray {r}");
+        assert_eq!(ray.intervals.prim, &own.prim[..], "ray {r}");
+        let far = glam::DVec3::from(ray.origin.map(f64::from))
+            + 20.0 * glam::DVec3::from(ray.dir.map(f64::from));
+        let (u, v, _) = im.cam.project(far).unwrap();
+        let tol = 1e-3;
+        assert!(
+            u > x as f64 - tol && u < (x + 1) as f64 + tol,
+            "ray {r}: u {u}, pixel x {x}"
+        );
+        assert!(
+            v > y as f64 - tol && v < (y + 1) as f64 + tol,
+            "ray {r}: v {v}, pixel y {y}"
+        );
+        let (dc, dj) = (centre.dir, ray.dir);
+        moved += usize::from(dc != dj);
+        other_intervals += usize::from(ray.intervals.prim != centre.intervals.prim);
+    }
+    assert!(moved > 1000, "{moved} rays moved");
+    assert!(
+        other_intervals > 10,
+        "{other_intervals} jittered rays cross other primitives than their centre ray"
+    );
+    assert!(fell_back > 0, "no jittered ray fell back to its centre");
+    assert!(seeds_differ > 1000, "{seeds_differ}");
+}
