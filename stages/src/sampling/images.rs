@@ -122,8 +122,8 @@ impl Rays for ImageRays<'_> {
 impl ImageRays<'_> {
     /// Ray `r` through the point `offset` (in pixels, each in [0, 1)) of its pixel; `None`: the
     /// pixel's centre, the ray the plan was traced with, whose interval count is checked
-    /// against the plan. An offset ray that leaves the lens or misses every primitive the
-    /// centre ray crosses falls back to the centre ray (its targets are the pixel's).
+    /// against the plan. An offset ray that leaves the lens, or crosses no primitive where the
+    /// centre ray crosses one, falls back to the centre ray (its targets are the pixel's).
     pub fn ray_at<'s>(
         &'s self,
         r: u32,
