@@ -72,6 +72,10 @@ pub struct SceneParams {
     /// and rendered walls, as on real streets). At 1/8 scale it barely changes the ablation:
     /// sensor noise, shading, joints and markings carry the matching (README, issue 19).
     pub texture: f64,
+    /// Rays per pixel side for the image colours: 1 = one ray through the pixel centre (a
+    /// point sample), n > 1 = the mean over n x n rays spread over the pixel, as a real sensor
+    /// integrates its pixel's footprint. Labels and depth stay the centre ray's. At most 8.
+    pub supersample: u32,
     /// Farthest depth stereo matching reports, metres.
     pub stereo_max_depth_m: f64,
     /// Classes that appear (paper class names); road, terrain and sky are required.
@@ -103,6 +107,7 @@ impl Default for SceneParams {
             noise: 1.0,
             noise_far_regions: 0.0,
             texture: 1.0,
+            supersample: 1,
             stereo_max_depth_m: 15.0,
             classes: PAPER_CLASSES
                 .iter()
@@ -222,6 +227,12 @@ impl SceneParams {
                 "`scale` {} gives {w}x{h} images; use at least {:.3} (16x4)",
                 p.scale,
                 16.0 / KITTI_WIDTH
+            ));
+        }
+        if !(1..=8).contains(&p.supersample) {
+            return bad(format!(
+                "`supersample` must be 1..=8 rays per pixel side, got {}",
+                p.supersample
             ));
         }
         if !(p.street_length_m.is_finite()
@@ -403,7 +414,7 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
         .map(|row| {
             let look =
                 tracer::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
-            let out = tracer::render(&layout, &bvh, &row.cam, &look);
+            let out = tracer::render(&layout, &bvh, &row.cam, &look, p.supersample);
             let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress.update(d, total, "rendering");
             out

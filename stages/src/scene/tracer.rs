@@ -1,8 +1,11 @@
-//! Exact rendering of the true geometry: one ray per pixel through the pixel centre, first hit
-//! via the geometry BVH, procedural textures, sun + ambient shading with cast shadows, and a
-//! per-image exposure (with occasional glare) that over-exposes some regions.
+//! Exact rendering of the true geometry: first hit via the geometry BVH, procedural textures,
+//! sun + ambient shading with cast shadows, and a per-image exposure (with occasional glare)
+//! that over-exposes some regions.
 //!
-//! The same ray gives colour, ground-truth class, instance and z-depth, so all four agree.
+//! The ray through the pixel centre gives the ground-truth class, instance and z-depth (point
+//! labels, as annotators and LiDAR give them). The colour is that ray's radiance, or with
+//! `supersample` n > 1 the mean radiance over an n x n grid of rays spread evenly over the
+//! pixel, as a real sensor integrates light over the pixel's footprint.
 
 use crate::geometry::{Bvh, Camera, DVec3, Ray};
 use crate::labels::{is_paper_thing, INSTANCE_FACTOR, SKY};
@@ -264,8 +267,45 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
     }
 }
 
-/// Renders one image.
-pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look) -> Rendered {
+/// The mean radiance over an `n` x `n` grid of rays spread evenly over pixel `(x, y)`;
+/// `centre` is the radiance of the centre ray, which is one of the grid's when `n` is odd.
+/// Sub-pixel rays outside a fisheye's lens are left out of the mean.
+pub fn pixel_radiance(
+    layout: &Layout,
+    bvh: &Bvh,
+    cam: &Camera,
+    (x, y): (usize, usize),
+    n: u32,
+    centre: [f64; 3],
+) -> [f64; 3] {
+    if n <= 1 {
+        return centre;
+    }
+    let mut sum = [0.0; 3];
+    let mut count = 0u32;
+    for j in 0..n {
+        for i in 0..n {
+            let radiance = if n % 2 == 1 && i == n / 2 && j == n / 2 {
+                centre
+            } else {
+                let u = x as f64 + (i as f64 + 0.5) / n as f64;
+                let v = y as f64 + (j as f64 + 0.5) / n as f64;
+                let Some(ray) = cam.ray(u, v) else {
+                    continue;
+                };
+                trace(layout, bvh, &ray).radiance
+            };
+            for k in 0..3 {
+                sum[k] += radiance[k];
+            }
+            count += 1;
+        }
+    }
+    sum.map(|v| v / count.max(1) as f64)
+}
+
+/// Renders one image; `supersample` rays per pixel side for the colour (1: the centre ray).
+pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look, supersample: u32) -> Rendered {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut out = Rendered {
         rgb: vec![0; w * h * 3],
@@ -292,9 +332,10 @@ pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look) -> Rendered
                 let d2 = (x as f64 + 0.5 - gu).powi(2) + (y as f64 + 0.5 - gv).powi(2);
                 k * (-d2 / (r * r)).exp()
             });
+            let radiance = pixel_radiance(layout, bvh, cam, (x, y), supersample, s.radiance);
             let mut clipped = false;
-            for c in 0..3 {
-                let v = s.radiance[c] * look.exposure + glare + 0.006 * rng.normal();
+            for (c, r) in radiance.iter().enumerate() {
+                let v = r * look.exposure + glare + 0.006 * rng.normal();
                 clipped |= v >= 1.0;
                 out.rgb[i * 3 + c] = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
             }
