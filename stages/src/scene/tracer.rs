@@ -269,7 +269,8 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
 
 /// The mean radiance over an `n` x `n` grid of rays spread evenly over pixel `(x, y)`;
 /// `centre` is the radiance of the centre ray, which is one of the grid's when `n` is odd.
-/// Sub-pixel rays outside a fisheye's lens are left out of the mean.
+/// Sub-pixel rays outside a fisheye's lens are left out of the mean (the centre ray's radiance
+/// when all are).
 pub fn pixel_radiance(
     layout: &Layout,
     bvh: &Bvh,
@@ -301,7 +302,11 @@ pub fn pixel_radiance(
             count += 1;
         }
     }
-    sum.map(|v| v / count.max(1) as f64)
+    if count == 0 {
+        // A lens-rim pixel whose sub-rays (n even: the centre is not one) all miss the lens.
+        return centre;
+    }
+    sum.map(|v| v / count as f64)
 }
 
 /// Renders one image; `supersample` rays per pixel side for the colour (1: the centre ray).
