@@ -15,8 +15,8 @@ use serde::{Deserialize, Serialize};
 use crate::geometry::DVec3;
 use crate::model::TrainError;
 use crate::model::{
-    fit, weights, BatchOrder, Engine, FieldSpec, LossTerm, LossTerms, ModelInfo, RayBatch,
-    TrainConfig,
+    fit, weights, BatchOrder, Engine, FieldSpec, JitterLabels, LossTerm, LossTerms, ModelInfo,
+    RayBatch, TrainConfig,
 };
 use crate::rng::{mix, SplitMix64};
 use crate::sampling::{self, ImageRays, JitteredRays, PrimInfo, SamplingParams};
@@ -217,6 +217,7 @@ impl TypedStage for Train {
                     rays: &rays,
                     seed: mix(jitter),
                     width: p.train.pixel_jitter as f64,
+                    bilinear_labels: p.train.jitter_labels == JitterLabels::Bilinear,
                 };
                 sampling::sample_batch(&jittered, &ids, &p.sampling, Some(jitter))
             } else {

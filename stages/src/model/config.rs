@@ -362,6 +362,21 @@ pub struct TrainConfig {
     /// against 2.72 / 89.6; 0.5: 2.75 / 81.5 -> 2.89 / 83.0, `street0` 2.77 / 87.5; 1 (three
     /// seeds): 2.82 / 80.3 -> 2.77 / 81.0, `street0` 3.06 / 83.9 against 2.70 / 89.2. Hence 0.25.
     pub pixel_jitter: f32,
+    /// The pseudo label a jittered ray trains on. `pixel`: its own pixel's. `bilinear`: a
+    /// neighbour's with the bilinear weight of the ray's point (a ray 0.3 px right of its pixel's
+    /// centre takes the right neighbour's label with probability 0.3), drawn anew with the point:
+    /// in expectation the cross-entropy against the bilinear mix of the 2 x 2 nearest pixels'
+    /// labels, which is what a point-sampled label map says about a point between its samples.
+    pub jitter_labels: JitterLabels,
+}
+
+/// See [`TrainConfig::jitter_labels`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JitterLabels {
+    #[default]
+    Pixel,
+    Bilinear,
 }
 
 impl Default for TrainConfig {
@@ -383,6 +398,7 @@ impl Default for TrainConfig {
             field_margin: 50.0,
             label_eps: 0.3,
             pixel_jitter: 0.25,
+            jitter_labels: JitterLabels::Pixel,
         }
     }
 }

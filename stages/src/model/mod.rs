@@ -37,7 +37,9 @@ mod parity;
 pub(crate) mod testing;
 
 pub use batch::{batch_indices, BatchOrder, RayBatch, RaySamples, RayTargets};
-pub use config::{EncodingKind, FieldConfig, FieldSpec, GridConfig, LossWeights, TrainConfig};
+pub use config::{
+    EncodingKind, FieldConfig, FieldSpec, GridConfig, JitterLabels, LossWeights, TrainConfig,
+};
 pub use engine::{Engine, EngineChoice};
 pub use error::{ModelError, TrainError};
 pub use field::{Field, FieldSamples, Heads};

@@ -130,6 +130,18 @@ impl ImageRays<'_> {
         offset: Option<[f64; 2]>,
         buf: &'s mut RayPlan,
     ) -> Result<SceneRay<'s>> {
+        self.ray_labelled_by(r, offset, [0, 0], buf)
+    }
+
+    /// [`Self::ray_at`], the pseudo label (and u(r)) taken from the pixel `label_shift` away
+    /// (clamped to the image) when the offset ray is used; the centre ray keeps its own.
+    pub fn ray_labelled_by<'s>(
+        &'s self,
+        r: u32,
+        offset: Option<[f64; 2]>,
+        label_shift: [i32; 2],
+        buf: &'s mut RayPlan,
+    ) -> Result<SceneRay<'s>> {
         let (im, p) = self.locate(r);
         let w = im.cam.width;
         let (x, y) = (p as u32 % w, p as u32 / w);
@@ -139,8 +151,15 @@ impl ImageRays<'_> {
             (!buf.t_in.is_empty() || im.hits[p] == 0)
                 .then(|| (ray, im.cam.depth_scale(d_cam) as f32))
         });
+        let mut label_pixel = p;
         let (ray, z_scale) = match offset_ray {
-            Some(r) => r,
+            Some(r) => {
+                let clamp = |v: u32, d: i32, n: u32| (v as i64 + d as i64).clamp(0, n as i64 - 1);
+                let lx = clamp(x, label_shift[0], w);
+                let ly = clamp(y, label_shift[1], im.cam.height);
+                label_pixel = (ly * w as i64 + lx) as usize;
+                r
+            }
             None => {
                 let (ray, z_scale) = pixel_ray_f64(&im.cam, x, y)?;
                 buf.trace(&self.primitives, &self.bvh, &ray, &self.params);
@@ -160,7 +179,9 @@ impl ImageRays<'_> {
         };
         let (origin, dir) = ray_f32(&ray);
         let t = &im.targets;
-        let mut label = t.labels.map_or(NONE, |l| self.prims.label_class(l[p]));
+        let mut label = t
+            .labels
+            .map_or(NONE, |l| self.prims.label_class(l[label_pixel]));
         // A pseudo label of sky on a ray below the horizon is the 2D network's mistake: no
         // setting of the fields can honour it (the ray has no sky interval), and chasing it
         // would make the ray transparent. Both 2D terms skip it.
@@ -394,13 +415,29 @@ pub struct JitteredRays<'r, 'a> {
     pub seed: u64,
     /// Window width in pixels, 0..=1 (1: the whole pixel).
     pub width: f64,
+    /// Label a ray by a neighbour drawn with the bilinear weights of its point
+    /// ([`crate::model::JitterLabels::Bilinear`]) instead of by its own pixel.
+    pub bilinear_labels: bool,
 }
 
 impl JitteredRays<'_, '_> {
     /// The point of ray `r`'s pixel it is cast through, each coordinate in [0, 1).
     pub fn offset(&self, r: u32) -> [f64; 2] {
+        self.draw(r).0
+    }
+
+    /// The point of [`Self::offset`] and the pixel (relative to ray `r`'s own) whose label the
+    /// ray takes: per axis the neighbour on the point's side with probability equal to the
+    /// point's distance from the centre, which is that neighbour's bilinear weight.
+    pub fn draw(&self, r: u32) -> ([f64; 2], [i32; 2]) {
         let mut g = SplitMix64::new(self.seed ^ mix(r as u64));
-        [0, 1].map(|_| 0.5 + self.width * (g.unit() as f64 - 0.5))
+        let offset = [0, 1].map(|_| 0.5 + self.width * (g.unit() as f64 - 0.5));
+        let shift = if self.bilinear_labels {
+            offset.map(|o| (o - 0.5 + g.unit() as f64).floor() as i32)
+        } else {
+            [0, 0]
+        };
+        (offset, shift)
     }
 }
 
@@ -412,6 +449,7 @@ impl Rays for JitteredRays<'_, '_> {
         self.rays.len()
     }
     fn ray<'s>(&'s self, r: u32, buf: &'s mut RayPlan) -> Result<SceneRay<'s>> {
-        self.rays.ray_at(r, Some(self.offset(r)), buf)
+        let (offset, shift) = self.draw(r);
+        self.rays.ray_labelled_by(r, Some(offset), shift, buf)
     }
 }

@@ -510,11 +510,13 @@ fn jittered_rays_pass_through_their_own_pixel() {
             rays: &traced,
             seed: 7,
             width: 1.0,
+            bilinear_labels: false,
         },
         JitteredRays {
             rays: &traced,
             seed: 8,
             width: 1.0,
+            bilinear_labels: false,
         },
     );
     let (mut buf, mut centre_buf, mut own) =
@@ -579,4 +581,85 @@ fn jittered_rays_pass_through_their_own_pixel() {
     );
     assert!(fell_back > 0, "no jittered ray fell back to its centre");
     assert!(seeds_differ > 1000, "{seeds_differ}");
+}
+
+/// Bilinear jitter labels: a ray takes the neighbour on its point's side of each axis with
+/// probability equal to the point's distance from the centre (the neighbour's bilinear
+/// weight), its own pixel's label otherwise, and the draw is deterministic in the seed.
+#[test]
+fn bilinear_jitter_labels_draw_neighbours_with_their_bilinear_weight() {
+    let scene = small_street();
+    let (mem, _, _) = planned(scene);
+    let traced = train_rays(&mem.inputs()).unwrap();
+    let j = JitteredRays {
+        rays: &traced,
+        seed: 11,
+        width: 1.0,
+        bilinear_labels: true,
+    };
+    let plain = JitteredRays {
+        bilinear_labels: false,
+        ..j
+    };
+    // Per axis, bins of the distance |offset - 0.5|: draws and neighbour picks.
+    const BINS: usize = 5;
+    let mut draws = [0usize; BINS];
+    let mut picked = [0usize; BINS];
+    let (mut buf, mut relabelled) = (RayPlan::default(), 0);
+    for r in 0..traced.len() as u32 {
+        let (off, shift) = j.draw(r);
+        assert_eq!(
+            off,
+            plain.offset(r),
+            "the point does not depend on the labels' draw"
+        );
+        assert_eq!(plain.draw(r).1, [0, 0]);
+        assert_eq!(j.draw(r), (off, shift), "deterministic");
+        for a in 0..2 {
+            let d = off[a] - 0.5;
+            assert!(
+                shift[a] == 0 || shift[a] == d.signum() as i32,
+                "{off:?} {shift:?}"
+            );
+            let bin = ((d.abs() * 2.0 * BINS as f64) as usize).min(BINS - 1);
+            draws[bin] += 1;
+            picked[bin] += usize::from(shift[a] != 0);
+        }
+        // The ray's label is the shifted pixel's (clamped to the image), sky aside (a sky
+        // label below the horizon is dropped).
+        let (im, p) = traced.locate(r);
+        let (w, h) = (im.cam.width as i64, im.cam.height as i64);
+        let (x, y) = (p as i64 % w, p as i64 / w);
+        let q = ((y + shift[1] as i64).clamp(0, h - 1) * w + (x + shift[0] as i64).clamp(0, w - 1))
+            as usize;
+        let Some(labels) = im.targets.labels else {
+            continue;
+        };
+        let want = traced.prims.label_class(labels[q]);
+        let ray = traced
+            .ray_labelled_by(r, Some(off), shift, &mut buf)
+            .unwrap();
+        let via_trait = j.ray(r, &mut RayPlan::default()).unwrap().targets.label;
+        assert_eq!(ray.targets.label, via_trait, "ray {r}");
+        let sky = want != NONE && traced.prims.classes[want as usize] == labels::SKY;
+        if !sky && (ray.dir != traced.ray(r, &mut RayPlan::default()).unwrap().dir) {
+            assert_eq!(ray.targets.label, want, "ray {r}, shift {shift:?}");
+            relabelled += usize::from(q != p && labels[q] != labels[p]);
+        }
+    }
+    for b in 0..BINS {
+        // Bin b holds distances in [b, b + 1) / (2 BINS): expected pick rate its midpoint.
+        let want = (b as f64 + 0.5) / (2 * BINS) as f64;
+        let got = picked[b] as f64 / draws[b] as f64;
+        let sd = (want * (1.0 - want) / draws[b] as f64).sqrt();
+        assert!(draws[b] > 500, "bin {b}: {} draws", draws[b]);
+        assert!(
+            (got - want).abs() < 4.0 * sd + 0.01,
+            "bin {b}: {got} vs {want}"
+        );
+    }
+    assert!(
+        relabelled > 20,
+        "{relabelled} rays took another class from a neighbour"
+    );
 }
