@@ -206,6 +206,7 @@ fn no_engine_silently_ignores_an_option() {
     let alternatives = |key: &str| -> Option<Vec<Value>> {
         match key {
             "field.encoding" => Some(vec![Value::from("pe")]),
+            "jitter_labels" => Some(vec![Value::from("bilinear")]),
             _ => None,
         }
     };
