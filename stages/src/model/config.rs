@@ -432,6 +432,13 @@ impl TrainConfig {
                 self.pixel_jitter
             )));
         }
+        if self.jitter_labels == JitterLabels::Bilinear && self.pixel_jitter == 0.0 {
+            return Err(invalid(
+                "jitter_labels = bilinear labels jittered rays by their point, but pixel_jitter = 0 \
+                 casts every ray through its pixel's centre: set pixel_jitter > 0 (e.g. 0.5)"
+                    .to_string(),
+            ));
+        }
         if !(self.field_margin.is_finite() && self.field_margin >= 0.0) {
             return Err(invalid(format!(
                 "field_margin = {} must be finite and >= 0",
@@ -513,6 +520,20 @@ mod tests {
             };
             ok.validate().unwrap();
         }
+        let idle = TrainConfig {
+            pixel_jitter: 0.0,
+            jitter_labels: JitterLabels::Bilinear,
+            ..Default::default()
+        };
+        let e = idle.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("jitter_labels") && e.contains("pixel_jitter"),
+            "{e}"
+        );
+        let e = serde_json::from_str::<TrainConfig>(r#"{"jitter_labels": "bilinar"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bilinar") && e.contains("bilinear"), "{e}");
     }
 
     #[test]
