@@ -435,8 +435,7 @@ impl TrainConfig {
         if self.jitter_labels == JitterLabels::Bilinear && self.pixel_jitter == 0.0 {
             return Err(invalid(
                 "jitter_labels = bilinear labels jittered rays by their point, but pixel_jitter = 0 \
-                 casts every ray through its pixel's centre: set pixel_jitter > 0 (e.g. 0.5)"
-                    .to_string(),
+                 casts every ray through its pixel's centre: set pixel_jitter > 0 (e.g. 0.5)",
             ));
         }
         if !(self.field_margin.is_finite() && self.field_margin >= 0.0) {

@@ -407,9 +407,9 @@ fn image_targets<'a>(
 
 /// The rays of an [`ImageRays`] each cast through a random point of a `width`-pixel window
 /// around its pixel's centre (the point a hash of `seed` and the ray id; a new `seed` per batch
-/// draws new points). The targets stay the pixel's: where a pixel straddles a class boundary no
-/// ray's label can be met exactly, which keeps training from carving the geometry to fit one
-/// wrong pseudo label ray by ray.
+/// draws new points). The targets stay the pixel's (the label too, unless `bilinear_labels`):
+/// where a pixel straddles a class boundary no ray's label can be met exactly, which keeps
+/// training from carving the geometry to fit one wrong pseudo label ray by ray.
 pub struct JitteredRays<'r, 'a> {
     pub rays: &'r ImageRays<'a>,
     pub seed: u64,
