@@ -6,6 +6,7 @@ pub mod aggregate;
 pub mod evaluate;
 pub mod intersect;
 pub mod kitti360_scene;
+pub mod motion_stereo;
 pub mod registry;
 pub mod render;
 pub mod report;

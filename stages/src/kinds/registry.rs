@@ -1,8 +1,8 @@
 //! Every stage kind, by name. The runner knows stages only through this.
 
 use super::{
-    aggregate, evaluate, intersect, kitti360_scene, render, report, stereo_depth, synthetic_scene,
-    testing, train,
+    aggregate, evaluate, intersect, kitti360_scene, motion_stereo, render, report, stereo_depth,
+    synthetic_scene, testing, train,
 };
 use crate::stage::Stage;
 
@@ -12,6 +12,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(synthetic_scene::SyntheticScene),
         Box::new(kitti360_scene::Kitti360Scene),
         Box::new(stereo_depth::StereoDepth),
+        Box::new(motion_stereo::MotionStereo),
         Box::new(intersect::Intersect),
         Box::new(train::Train),
         Box::new(render::Render),

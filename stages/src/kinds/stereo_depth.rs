@@ -74,16 +74,24 @@ impl TypedStage for StereoDepth {
             let depth = depth_from_disparity(&disp, c.cam.fx, info.baseline, p.max_depth_m);
             rows.push(((c.frame, 0u8, w as u32, h as u32), depth));
         }
-        let t = tables::build(
-            "stereo_depth",
-            vec![
-                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .0)),
-                tables::prim::<UInt8Type>(rows.iter().map(|r| r.0 .1)),
-                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .2)),
-                tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .3)),
-                tables::list::<Float32Type>(rows.into_iter().map(|r| r.1)),
-            ],
-        )?;
-        Ok(Tables::from([("stereo_depth".to_string(), t)]))
+        depth_tables(rows)
     }
+}
+
+/// One row of a `stereo_depth` table: (frame, camera, width, height) and the depth values.
+pub type DepthRow = ((u32, u8, u32, u32), Vec<f32>);
+
+/// The `stereo_depth` output of `rows`.
+pub fn depth_tables(rows: Vec<DepthRow>) -> Result<Tables> {
+    let t = tables::build(
+        "stereo_depth",
+        vec![
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .0)),
+            tables::prim::<UInt8Type>(rows.iter().map(|r| r.0 .1)),
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .2)),
+            tables::prim::<UInt32Type>(rows.iter().map(|r| r.0 .3)),
+            tables::list::<Float32Type>(rows.into_iter().map(|r| r.1)),
+        ],
+    )?;
+    Ok(Tables::from([("stereo_depth".to_string(), t)]))
 }

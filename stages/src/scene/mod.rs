@@ -11,5 +11,6 @@ pub mod noise;
 pub mod preview;
 pub mod rng;
 pub mod stereo;
+pub mod sweep;
 pub mod synthetic;
 pub mod tracer;

@@ -66,20 +66,9 @@ impl StereoParams {
                 p.max_disparity
             ));
         }
-        if !(1..=3).contains(&p.census_radius) {
-            return bad(format!(
-                "`census_radius` must be 1, 2 or 3, got {}",
-                p.census_radius
-            ));
-        }
+        check_matching(p.census_radius, p.p1, p.p2)?;
         if p.paths != 4 && p.paths != 8 {
             return bad(format!("`paths` must be 4 or 8, got {}", p.paths));
-        }
-        if p.p1 == 0 || p.p2 < p.p1 || p.p2 > 1000 {
-            return bad(format!(
-                "penalties must satisfy 0 < p1 <= p2 <= 1000, got p1 {} p2 {}",
-                p.p1, p.p2
-            ));
         }
         if !(p.lr_tolerance >= 0.0 && (0.0..1.0).contains(&p.uniqueness)) {
             return bad("`lr_tolerance` must be >= 0 and `uniqueness` in [0, 1)".into());
@@ -92,6 +81,22 @@ impl StereoParams {
         }
         Ok(())
     }
+}
+
+/// Checks the census radius and the aggregation penalties (shared by the matchers); errors
+/// name them.
+pub(super) fn check_matching(census_radius: u32, p1: u16, p2: u16) -> Result<()> {
+    if !(1..=3).contains(&census_radius) {
+        return Err(StageError::Params(format!(
+            "`census_radius` must be 1, 2 or 3, got {census_radius}"
+        )));
+    }
+    if p1 == 0 || p2 < p1 || p2 > 1000 {
+        return Err(StageError::Params(format!(
+            "penalties must satisfy 0 < p1 <= p2 <= 1000, got p1 {p1} p2 {p2}"
+        )));
+    }
+    Ok(())
 }
 
 /// Grey levels (Rec. 601 luma) of `w*h*3` RGB bytes.
@@ -145,45 +150,15 @@ pub fn disparity(left: &[u8], right: &[u8], w: usize, h: usize, p: &StereoParams
                 }
             }
         });
-    // Aggregation.
-    let mut dirs: Vec<(i64, i64)> = vec![(1, 0), (-1, 0), (0, 1), (0, -1)];
-    if p.paths == 8 {
-        dirs.extend([(1, 1), (-1, 1), (1, -1), (-1, -1)]);
-    }
-    let mut sum = vec![0u16; w * h * nd];
-    for &(dx, dy) in &dirs {
-        aggregate(&cost, &mut sum, w, h, nd, dx, dy, p.p1, p.p2);
-    }
+    let sum = sgm_sum(&cost, w, h, nd, p.paths, p.p1, p.p2);
     // Winner-takes-all, uniqueness and sub-pixel refinement on the left.
     let mut disp = vec![f32::NAN; w * h];
     disp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, o) in row.iter_mut().enumerate() {
             let s = &sum[(y * w + x) * nd..(y * w + x + 1) * nd];
-            let valid = nd.min(x + 1);
-            let (best, &bc) = s[..valid]
-                .iter()
-                .enumerate()
-                .min_by_key(|&(_, c)| *c)
-                .unwrap_or((0, &0));
-            let second = s[..valid]
-                .iter()
-                .enumerate()
-                .filter(|&(d, _)| d + 1 < best || d > best + 1)
-                .map(|(_, &c)| c)
-                .min()
-                .unwrap_or(u16::MAX);
-            if (second as f32) * (1.0 - p.uniqueness) < bc as f32 {
-                continue;
+            if let Some(d) = winner(&s[..nd.min(x + 1)], p.uniqueness) {
+                *o = d;
             }
-            let mut d = best as f32;
-            if best > 0 && best + 1 < valid {
-                let (a, b, c) = (s[best - 1] as f32, bc as f32, s[best + 1] as f32);
-                let den = a - 2.0 * b + c;
-                if den > 0.0 {
-                    d += (0.5 * (a - c) / den).clamp(-0.5, 0.5);
-                }
-            }
-            *o = d;
         }
     });
     // Right disparities from the same volume: d_R(x) = argmin_d sum(x + d, d).
@@ -214,6 +189,54 @@ pub fn disparity(left: &[u8], right: &[u8], w: usize, h: usize, p: &StereoParams
         }
     });
     disp
+}
+
+/// The matching cost `[h, w, nd]` aggregated along 8 (or 4) scanline `paths` with penalties
+/// `p1` (a one-step change) and `p2` (a larger jump): semi-global matching's summed volume.
+pub(super) fn sgm_sum(
+    cost: &[u16],
+    w: usize,
+    h: usize,
+    nd: usize,
+    paths: u32,
+    p1: u16,
+    p2: u16,
+) -> Vec<u16> {
+    let mut dirs: Vec<(i64, i64)> = vec![(1, 0), (-1, 0), (0, 1), (0, -1)];
+    if paths == 8 {
+        dirs.extend([(1, 1), (-1, 1), (1, -1), (-1, -1)]);
+    }
+    let mut sum = vec![0u16; w * h * nd];
+    for &(dx, dy) in &dirs {
+        aggregate(cost, &mut sum, w, h, nd, dx, dy, p1, p2);
+    }
+    sum
+}
+
+/// The index of the lowest of `s` refined to sub-step by a parabola through its neighbours;
+/// `None` unless it beats the lowest cost more than one step away by the fraction
+/// `uniqueness`.
+pub(super) fn winner(s: &[u16], uniqueness: f32) -> Option<f32> {
+    let (best, &bc) = s.iter().enumerate().min_by_key(|&(_, c)| *c)?;
+    let second = s
+        .iter()
+        .enumerate()
+        .filter(|&(d, _)| d + 1 < best || d > best + 1)
+        .map(|(_, &c)| c)
+        .min()
+        .unwrap_or(u16::MAX);
+    if (second as f32) * (1.0 - uniqueness) < bc as f32 {
+        return None;
+    }
+    let mut d = best as f32;
+    if best > 0 && best + 1 < s.len() {
+        let (a, b, c) = (s[best - 1] as f32, bc as f32, s[best + 1] as f32);
+        let den = a - 2.0 * b + c;
+        if den > 0.0 {
+            d += (0.5 * (a - c) / den).clamp(-0.5, 0.5);
+        }
+    }
+    Some(d)
 }
 
 /// Adds the path costs `L_r` of direction `(dx, dy)` to `sum`.
