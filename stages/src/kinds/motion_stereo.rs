@@ -10,7 +10,10 @@ use super::stereo_depth::{depth_tables, DepthRow};
 use crate::geometry::{cameras_from_table, Camera};
 use crate::scene::io::image_keys;
 use crate::scene::stereo::grey;
-use crate::scene::sweep::{confirm, lens_mask, sweep, trim_edges, SweepParams, View};
+use crate::scene::sweep::{
+    confirm, lens_mask, shrink, shrink_factor, shrink_grey, shrink_mask, spread, sweep, trim_edges,
+    SweepParams, View,
+};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
 use crate::tables;
 
@@ -75,8 +78,11 @@ impl TypedStage for MotionStereo {
         let mut done = 0;
         let mut rows: Vec<DepthRow> = Vec::new();
         for (&camera, frames) in &by_camera {
-            let mut greys = BTreeMap::new();
-            for (&frame, cam) in frames {
+            // Each image at the size it is matched at ([`shrink_factor`]), with its lens mask
+            // (which depends on the intrinsics only: computed once per set of them).
+            let mut masks: Vec<(&Camera, Vec<bool>)> = Vec::new();
+            let mut small: BTreeMap<u32, (Camera, u32, Vec<u8>, usize)> = BTreeMap::new();
+            for (&frame, &cam) in frames {
                 let i = *index.get(&(frame, camera)).ok_or_else(|| {
                     StageError::Input(format!(
                         "no `images` row for frame {frame} camera {camera} of `cameras`"
@@ -89,12 +95,6 @@ impl TypedStage for MotionStereo {
                          cameras table says"
                     )));
                 }
-                greys.insert(frame, grey(rgb.value(i)));
-            }
-            // The lens mask depends on the intrinsics only: computed once per set of them.
-            let mut masks: Vec<(&Camera, Vec<bool>)> = Vec::new();
-            let mut mask_of = HashMap::new();
-            for (&frame, &cam) in frames {
                 let m = match masks.iter().position(|(c, _)| same_intrinsics(c, cam)) {
                     Some(m) => m,
                     None => {
@@ -102,12 +102,24 @@ impl TypedStage for MotionStereo {
                         masks.len() - 1
                     }
                 };
-                mask_of.insert(frame, m);
+                let f = shrink_factor(cam, p.max_side);
+                let g = shrink_grey(&grey(rgb.value(i)), w, h, f);
+                small.insert(frame, (shrink(cam, f), f, g, m));
             }
-            let view = |f: u32| View {
-                cam: frames[&f],
-                grey: &greys[&f],
-                in_lens: &masks[mask_of[&f]].1,
+            let shrunk_masks: Vec<Vec<bool>> = masks
+                .iter()
+                .map(|(cam, m)| {
+                    let f = shrink_factor(cam, p.max_side);
+                    shrink_mask(m, cam.width as usize, cam.height as usize, f)
+                })
+                .collect();
+            let view = |f: u32| {
+                let (cam, _, grey, m) = &small[&f];
+                View {
+                    cam,
+                    grey,
+                    in_lens: &shrunk_masks[*m],
+                }
             };
             let near = |f: u32| -> Vec<u32> {
                 p.neighbours
@@ -133,12 +145,14 @@ impl TypedStage for MotionStereo {
                     .into_iter()
                     .map(|g| (view(g), raw[&g].as_slice()))
                     .collect();
-                let cam = frames[&f];
-                let (w, h) = (cam.width as usize, cam.height as usize);
-                let confirmed = confirm(&view(f), d, &others, p.consistency);
+                let (cam, factor) = (frames[&f], small[&f].1);
+                let v = view(f);
+                let (w, h) = (v.cam.width as usize, v.cam.height as usize);
+                let confirmed = confirm(&v, d, &others, p.consistency);
+                let trimmed = trim_edges(&confirmed, w, h, p.max_jump, p.max_missing_neighbours);
                 rows.push((
                     (f, camera, cam.width, cam.height),
-                    trim_edges(&confirmed, w, h, p.max_jump, p.max_missing_neighbours),
+                    spread(&trimmed, w, cam.width as usize, cam.height as usize, factor),
                 ));
             }
         }

@@ -58,6 +58,11 @@ pub struct SweepParams {
     /// holes and depth edges.
     pub max_jump: f64,
     pub max_missing_neighbours: u32,
+    /// Images wider or taller than this are matched at 1/n of their size (the smallest whole
+    /// n that brings both within it; n x n pixels averaged) and each depth is given back to
+    /// the n x n pixels it came from: at 1400 px the distance steps lie several pixels apart,
+    /// so full resolution would cost 16 times the time for no finer depth.
+    pub max_side: u32,
 }
 
 impl Default for SweepParams {
@@ -75,6 +80,7 @@ impl Default for SweepParams {
             consistency: 0.05,
             max_jump: 0.1,
             max_missing_neighbours: 2,
+            max_side: 400,
         }
     }
 }
@@ -127,6 +133,12 @@ impl SweepParams {
         if !(p.max_jump > 0.0 && p.max_jump.is_finite()) {
             return bad(format!("`max_jump` must be positive, got {}", p.max_jump));
         }
+        if p.max_side < 16 {
+            return bad(format!(
+                "`max_side` must be at least 16, got {}",
+                p.max_side
+            ));
+        }
         if p.max_missing_neighbours > 8 {
             return bad(format!(
                 "`max_missing_neighbours` must be at most 8, got {}",
@@ -160,6 +172,74 @@ pub fn lens_mask(cam: &Camera) -> Vec<bool> {
     (0..cam.width * cam.height)
         .into_par_iter()
         .map(|i| cam.pixel_in_lens(i % w, i / w))
+        .collect()
+}
+
+/// The factor an image of `cam` is shrunk by to fit within `max_side` pixels.
+pub fn shrink_factor(cam: &Camera, max_side: u32) -> u32 {
+    cam.width.max(cam.height).div_ceil(max_side).max(1)
+}
+
+/// `cam` for its image shrunk by `f` (`f` x `f` pixels to one, leftover rows and columns
+/// dropped): image coordinates scale by 1 / f.
+pub fn shrink(cam: &Camera, f: u32) -> Camera {
+    let s = f as f64;
+    Camera {
+        width: cam.width / f,
+        height: cam.height / f,
+        fx: cam.fx / s,
+        fy: cam.fy / s,
+        cx: cam.cx / s,
+        cy: cam.cy / s,
+        ..cam.clone()
+    }
+}
+
+/// Grey levels (`w` x `h`) shrunk by `f`: the mean of each `f` x `f` block.
+pub fn shrink_grey(grey: &[u8], w: usize, h: usize, f: u32) -> Vec<u8> {
+    let f = f as usize;
+    if f == 1 {
+        return grey.to_vec();
+    }
+    let (ws, hs) = (w / f, h / f);
+    (0..ws * hs)
+        .map(|i| {
+            let (x, y) = (i % ws * f, i / ws * f);
+            let sum: u32 = (y..y + f)
+                .flat_map(|yy| grey[yy * w + x..yy * w + x + f].iter())
+                .map(|&g| g as u32)
+                .sum();
+            ((sum + (f * f / 2) as u32) / (f * f) as u32) as u8
+        })
+        .collect()
+}
+
+/// A lens mask (`w` x `h`) shrunk by `f`: a pixel is in the lens when its whole block is.
+pub fn shrink_mask(mask: &[bool], w: usize, h: usize, f: u32) -> Vec<bool> {
+    let f = f as usize;
+    let (ws, hs) = (w / f, h / f);
+    (0..ws * hs)
+        .map(|i| {
+            let (x, y) = (i % ws * f, i / ws * f);
+            (y..y + f).all(|yy| mask[yy * w + x..yy * w + x + f].iter().all(|&m| m))
+        })
+        .collect()
+}
+
+/// A depth map of width `ws` matched at 1/f of a `w` x `h` image, given back to every pixel
+/// of each block (0 for the leftover rows and columns).
+pub fn spread(small: &[f32], ws: usize, w: usize, h: usize, f: u32) -> Vec<f32> {
+    let f = f as usize;
+    let hs = small.len() / ws.max(1);
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w / f, i / w / f);
+            if x < ws && y < hs {
+                small[y * ws + x]
+            } else {
+                0.0
+            }
+        })
         .collect()
 }
 
