@@ -578,3 +578,53 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     assert!(html.contains("Depth error breakdown") && html.contains("alt=\"depth error\""));
     assert!(html.contains("cam 2</td>") && html.contains("cam 3</td>"));
 }
+
+/// The shipped `pipelines/fisheye.yaml`, shrunk: the fisheye cameras get their depth from
+/// motion stereo (the left camera keeps the scene's), training reads it, and `evaluate.frames`
+/// scores only the frames asked for (a frame the scene does not evaluate is an error naming it).
+#[test]
+fn fisheye_pipeline_gets_motion_stereo_depth_and_evaluates_chosen_frames() {
+    let file = Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/fisheye.yaml");
+    let ws = Workspace::new(&fs::read_to_string(file).unwrap());
+    let sets = [
+        "scene.frames=6",
+        "scene.eval_every=2",
+        "scene.scale=0.0625",
+        "train.train.iterations=40",
+        "train.train.rays_per_batch=256",
+    ];
+    let mut args: Vec<&str> = sets.iter().flat_map(|s| ["--set", *s]).collect();
+    ws.run_ok(&args);
+    let mut show = vec!["fisheye_depth", "--head", "20"];
+    show.extend(&args);
+    let (code, out, err) = ws.cmd("show", &show);
+    assert_eq!(code, 0, "{out}{err}");
+    // 6 frames: 6 left rows kept and 12 fisheye rows added.
+    assert!(out.contains("18 rows"), "{out}");
+    let metrics = |ws: &Workspace, args: &[&str]| -> serde_json::Value {
+        let mut ev = vec!["evaluate", "--to", "eval"];
+        ev.extend(args);
+        let (code, out, err) = ws.cmd("export", &ev);
+        assert_eq!(code, 0, "{out}{err}");
+        serde_json::from_slice(&fs::read(ws.dir().join("eval/metrics.json")).unwrap()).unwrap()
+    };
+    let frames = |m: &serde_json::Value| {
+        m["by_camera_model"]["fisheye"]["panoptic_nerf"]["frames"]
+            .as_f64()
+            .unwrap()
+    };
+    // Evaluation frames 20, 22 and 24, two fisheye images each.
+    assert_eq!(frames(&metrics(&ws, &args)), 6.0);
+    args.extend(["--set", "evaluate.frames=[22]"]);
+    ws.run_ok(&args);
+    assert_eq!(frames(&metrics(&ws, &args)), 2.0);
+    let n = args.len();
+    args[n - 1] = "evaluate.frames=[21]";
+    let (code, out, err) = ws.run(&args);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("frame 21 is not an evaluation frame")
+            || out.contains("frame 21 is not an evaluation frame"),
+        "{out}{err}"
+    );
+}

@@ -477,9 +477,20 @@ impl TypedStage for Evaluate {
         let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
         let bvh = Bvh::build(&prims);
         let maps = Sources::new(inputs)?;
+        for &f in &p.frames {
+            if !cameras.iter().any(|c| c.eval && c.frame == f) {
+                let mut marked: Vec<u32> =
+                    cameras.iter().filter(|c| c.eval).map(|c| c.frame).collect();
+                marked.dedup();
+                return Err(StageError::Params(format!(
+                    "`frames`: frame {f} is not an evaluation frame of the scene (those: {marked:?})"
+                )));
+            }
+        }
         let mut eval: Vec<&CameraRow> = cameras
             .iter()
             .filter(|c| c.eval && p.cameras.contains(&c.camera))
+            .filter(|c| p.frames.is_empty() || p.frames.contains(&c.frame))
             .collect();
         eval.sort_by_key(|c| (c.camera, c.frame));
         // No evaluation image (a sequence without 2D GT, the usual case): the tables say so

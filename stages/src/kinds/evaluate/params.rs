@@ -21,6 +21,9 @@ pub struct EvaluateParams {
     pub mc_distance: f64,
     /// Depth metrics use LiDAR pixels closer than this, metres.
     pub max_depth: f64,
+    /// Evaluation frames scored (default, empty: every one the scene marks); with
+    /// `render.frames`, the frames rendered, e.g. those in the middle of a longer window.
+    pub frames: Vec<u32>,
 }
 
 impl Default for EvaluateParams {
@@ -32,6 +35,7 @@ impl Default for EvaluateParams {
             min_segment_px: 100,
             mc_distance: 0.1,
             max_depth: 100.0,
+            frames: Vec::new(),
         }
     }
 }
