@@ -226,7 +226,7 @@ mod tests {
             }
             let j = gt_keys.iter().position(|g| g == k).unwrap();
             for (&d, &g) in depth.row(i).iter().zip(gt.row(j)) {
-                near += (g > 0.0 && g < 15.0) as usize;
+                near += (g > 0.0 && g < 10.0) as usize;
                 if d > 0.0 {
                     found += 1;
                     sky += (g == 0.0) as usize;
@@ -235,13 +235,13 @@ mod tests {
             }
         }
         eprintln!(
-            "fisheye depth: {found} values ({:.1}% of pixels under 15 m), {gross} more than 10% \
+            "fisheye depth: {found} values ({:.1}% of pixels under 10 m), {gross} more than 10% \
              off, {sky} on sky",
             100.0 * found as f64 / near as f64
         );
         assert!(
             found * 5 > near,
-            "only {found} depths for {near} pixels under 15 m"
+            "only {found} depths for {near} pixels under 10 m"
         );
         assert!(
             gross * 50 < found,
