@@ -211,7 +211,7 @@ pub enum Command {
     /// Run a bench suite through the cached pipeline: time against error, the ablation table,
     /// machine and runner figures (REPORT.md, report.html, results.parquet, PNG plots).
     Bench {
-        /// A built-in suite (quick, standard, full, seeds, growth) or a suite file (.yaml).
+        /// A built-in suite (quick, standard, full, seeds, growth, fisheye) or a suite file (.yaml).
         #[arg(long, default_value = "quick", value_name = "SUITE")]
         suite: String,
         /// Output directory (default: bench-results/SUITE).

@@ -59,6 +59,11 @@ pub const BUILT_IN: &[(&str, &str, &str)] = &[
         "benches/suites/growth.yaml",
         include_str!("../../benches/suites/growth.yaml"),
     ),
+    (
+        "fisheye",
+        "benches/suites/fisheye.yaml",
+        include_str!("../../benches/suites/fisheye.yaml"),
+    ),
 ];
 
 fn yes() -> bool {

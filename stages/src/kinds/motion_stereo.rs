@@ -67,7 +67,7 @@ impl TypedStage for MotionStereo {
                 .or_default()
                 .insert(c.frame, &c.cam);
         }
-        if by_camera.is_empty() {
+        if by_camera.is_empty() && !p.cameras.is_empty() {
             return Err(StageError::Input(format!(
                 "no image of the `cameras` table has a camera id in {:?} (`cameras` of \
                  motion_stereo)",
@@ -248,6 +248,18 @@ mod tests {
             "{gross} of {found} depths are more than 10% off"
         );
         assert!(sky * 100 < found, "{sky} of {found} depths lie on the sky");
+    }
+
+    #[test]
+    fn no_cameras_pass_the_stereo_depth_through() {
+        let sp = SceneParams {
+            frames: 2,
+            fisheye: true,
+            ..Default::default()
+        };
+        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        let out = run(serde_json::json!({"cameras": []}), &scene).unwrap();
+        assert_eq!(out["stereo_depth"], scene["stereo_depth"]);
     }
 
     #[test]

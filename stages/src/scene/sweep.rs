@@ -32,6 +32,7 @@ use crate::{Result, StageError};
 #[serde(default, deny_unknown_fields)]
 pub struct SweepParams {
     /// Cameras whose images get depth (numbers or KITTI-360 names; 2, 3: the fisheye cameras).
+    /// Empty: none, the stereo depth passes through unchanged (a switch for comparisons).
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
     pub cameras: Vec<u8>,
     /// Frame offsets of the images each one is matched against (those present are used).
@@ -92,9 +93,9 @@ impl SweepParams {
     pub fn validate(&self) -> Result<()> {
         let p = self;
         let bad = |m: String| Err(StageError::Params(m));
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+        if p.cameras.iter().any(|&c| c > 3) {
             return bad(
-                "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye ones)".into(),
+                "`cameras` may list only KITTI-360 cameras 0 .. 3 (2, 3: the fisheye ones)".into(),
             );
         }
         if p.neighbours.is_empty() || p.neighbours.contains(&0) {
