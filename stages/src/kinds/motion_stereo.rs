@@ -192,16 +192,22 @@ mod tests {
         crate::Stage::run(&s, &v, &mem.inputs(), &crate::NoProgress)
     }
 
+    /// The synthetic street of `frames` frames, with its fisheye cameras when `fisheye`.
+    fn street(frames: u32, fisheye: bool) -> (SceneParams, Tables) {
+        let sp = SceneParams {
+            frames,
+            fisheye,
+            ..Default::default()
+        };
+        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        (sp, scene)
+    }
+
     /// The synthetic street with its fisheye cameras: the fisheye images get depth that agrees
     /// with the exact distance, the left camera keeps the scene's stereo depth unchanged.
     #[test]
     fn fisheye_images_get_depth_and_the_left_camera_keeps_its_own() {
-        let sp = SceneParams {
-            frames: 4,
-            fisheye: true,
-            ..Default::default()
-        };
-        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        let (sp, scene) = street(4, true);
         let out = run(serde_json::json!({}), &scene).unwrap();
         let t = &out["stereo_depth"];
         let keys = image_keys(t, "stereo_depth").unwrap();
@@ -252,23 +258,14 @@ mod tests {
 
     #[test]
     fn no_cameras_pass_the_stereo_depth_through() {
-        let sp = SceneParams {
-            frames: 2,
-            fisheye: true,
-            ..Default::default()
-        };
-        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        let (_, scene) = street(2, true);
         let out = run(serde_json::json!({"cameras": []}), &scene).unwrap();
         assert_eq!(out["stereo_depth"], scene["stereo_depth"]);
     }
 
     #[test]
     fn a_camera_the_scene_lacks_is_an_error_naming_the_parameter() {
-        let sp = SceneParams {
-            frames: 2,
-            ..Default::default()
-        };
-        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        let (_, scene) = street(2, false);
         let e = run(serde_json::json!({}), &scene).unwrap_err().to_string();
         assert!(e.contains("`cameras` of motion_stereo"), "{e}");
         let e = run(serde_json::json!({"neighbours": [0]}), &scene)

@@ -282,6 +282,13 @@ fn sample(v: &View, u: f64, y: f64) -> Option<f32> {
     Some((g[0] * (1.0 - ax) + g[1] * ax) * (1.0 - ay) + (g[2] * (1.0 - ax) + g[3] * ax) * ay)
 }
 
+/// Image point of the camera-frame point (or direction) `q` ([`Camera::project`] without its
+/// per-call pose inversion); `None` where the lens does not image it.
+fn image_point(cam: &Camera, q: DVec3) -> Option<(f64, f64)> {
+    let m = cam.lens.to_plane(q)?;
+    Some((cam.fx * m.x + cam.cx, cam.fy * m.y + cam.cy))
+}
+
 /// The depth value a depth map of `cam` (world -> camera `to_cam`) holds for the point `t`
 /// metres along the unit world direction `dir` from its centre.
 fn depth_value(cam: &Camera, to_cam: &DAffine3, dir: DVec3, t: f64) -> f64 {
@@ -323,10 +330,9 @@ pub fn sweep(reference: &View, neighbours: &[View], p: &SweepParams) -> Vec<f32>
             let mut valid = vec![false; n];
             for (i, d) in dirs_nb.iter().enumerate() {
                 let Some(d) = d else { continue };
-                let Some(m) = nb.cam.lens.to_plane(o * inv + *d) else {
+                let Some((u, v)) = image_point(nb.cam, o * inv + *d) else {
                     continue;
                 };
-                let (u, v) = (nb.cam.fx * m.x + nb.cam.cx, nb.cam.fy * m.y + nb.cam.cy);
                 if let Some(g) = sample(nb, u, v) {
                     warped[i] = g.round() as u8;
                     valid[i] = true;
@@ -405,10 +411,9 @@ pub fn confirm(
             let x = origin + ray_distance(cam, &to_cam, ray.dir, di as f64) * ray.dir;
             let confirmed = others.iter().any(|(v, dm, to_v)| {
                 let c = v.cam;
-                let Some(m) = c.lens.to_plane(to_v.transform_point3(x)) else {
+                let Some((u, y)) = image_point(c, to_v.transform_point3(x)) else {
                     return false;
                 };
-                let (u, y) = (c.fx * m.x + c.cx, c.fy * m.y + c.cy);
                 if !(u >= 0.0 && y >= 0.0 && u < c.width as f64 && y < c.height as f64) {
                     return false;
                 }
