@@ -182,6 +182,18 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
     // A second run is all cache hits.
     ws.run_ok(&[]);
     assert!(ws.last_run().iter().all(|(_, o)| *o == Outcome::Cached));
+    // Training again with the same seed and config writes the same bytes (no clock in its
+    // tables), so nothing downstream of it re-runs.
+    ws.run_ok(&["--force", "train"]);
+    let r = ws.last_run_map();
+    assert_eq!(r["train"], Outcome::Ran);
+    for stage in ["render", "evaluate", "report"] {
+        assert_eq!(
+            r[stage],
+            Outcome::Cached,
+            "{stage} after a same-seed re-train"
+        );
+    }
 
     // The median depth: written where the expected depth is (opacity 0.5, up to rays at
     // exactly 0.5), one sample's distance where the weight is split.

@@ -128,7 +128,9 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
-    const VERSION: u32 = 13;
+    // 14: the train log has no wall-clock column (the same seed and config give the same bytes;
+    // the runner times the stage).
+    const VERSION: u32 = 14;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -203,21 +205,23 @@ impl TypedStage for Train {
         let batch = p.train.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
         let mut log = LogColumns::default();
-        let mut order = BatchOrder::new(p.train.seed, candidates.len(), batch);
+        let training_rays = candidates.len() as f64;
+        let mut order = BatchOrder::over(p.train.seed, candidates, batch);
         // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from a
         // SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share all
         // but one ray: training saw only ~iterations + batch distinct rays.)
         let next_batch = |it: usize| {
-            let ids: Vec<u32> = order.indices(it).iter().map(|&i| candidates[i]).collect();
+            let ids: Vec<u32> = order.indices(it).to_vec();
             let jitter =
                 SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                     .next_u64();
-            let batch = if p.train.pixel_jitter > 0.0 {
+            let (width, labels) = p.train.jitter_at(it as f64 * batch as f64 / training_rays);
+            let batch = if width > 0.0 {
                 let jittered = JitteredRays {
                     rays: &rays,
                     seed: mix(jitter),
-                    width: p.train.pixel_jitter as f64,
-                    bilinear_labels: p.train.jitter_labels == JitterLabels::Bilinear,
+                    width: width as f64,
+                    bilinear_labels: labels == JitterLabels::Bilinear,
                 };
                 sampling::sample_batch(&jittered, &ids, &p.sampling, Some(jitter))
             } else {
@@ -229,9 +233,9 @@ impl TypedStage for Train {
         };
         fit(trainer.as_mut(), iters, next_batch, |losses| {
             let it = losses.iteration;
-            let secs = start.elapsed().as_secs_f64();
-            log.push(it as u32, secs, losses);
+            log.push(it as u32, losses);
             if it % 10 == 0 || it + 1 == iters {
+                let secs = start.elapsed().as_secs_f64();
                 let rays_s = (it + 1) as f64 * batch as f64 / secs.max(1e-9);
                 progress.update(
                     it as u64 + 1,
@@ -260,7 +264,6 @@ impl TypedStage for Train {
 #[derive(Default)]
 struct LogColumns {
     iteration: Vec<u32>,
-    seconds: Vec<f64>,
     lr: Vec<f64>,
     total: Vec<f32>,
     grad_norm: Vec<f32>,
@@ -268,9 +271,8 @@ struct LogColumns {
 }
 
 impl LogColumns {
-    fn push(&mut self, it: u32, secs: f64, l: &LossTerms) {
+    fn push(&mut self, it: u32, l: &LossTerms) {
         self.iteration.push(it);
-        self.seconds.push(secs);
         self.lr.push(l.lr);
         self.total.push(l.total);
         self.grad_norm.push(l.grad_norm);
@@ -282,7 +284,6 @@ impl LogColumns {
     fn table(self) -> Result<RecordBatch> {
         let mut cols: Vec<ArrayRef> = vec![
             tables::prim::<UInt32Type>(self.iteration),
-            tables::prim::<Float64Type>(self.seconds),
             tables::prim::<Float64Type>(self.lr),
             tables::prim::<Float32Type>(self.total),
             tables::prim::<Float32Type>(self.grad_norm),

@@ -227,32 +227,48 @@ pub fn batch_indices(seed: u64, iteration: usize, total: usize, batch: usize) ->
 }
 
 /// [`batch_indices`] for consecutive iterations, shuffling once per epoch instead of once per
-/// call.
-pub struct BatchOrder {
+/// call. [`BatchOrder::over`] shuffles the values themselves (ray ids), so a full-size scene's
+/// 300 M candidate rays cost their own 1.2 GB and no index array beside them.
+pub struct BatchOrder<T = usize> {
     seed: u64,
     batch: usize,
     epoch: Option<usize>,
-    order: Vec<usize>,
+    order: Vec<T>,
 }
 
-impl BatchOrder {
+impl BatchOrder<usize> {
     pub fn new(seed: u64, total: usize, batch: usize) -> Self {
-        assert!(total > 0, "no rays to draw from");
+        Self::over(seed, (0..total).collect(), batch)
+    }
+}
+
+impl<T: Copy + Ord> BatchOrder<T> {
+    /// Batches of `values`, which must be strictly ascending: each epoch's shuffle starts from
+    /// them in that order (restored by sorting), so the batches are `values[i]` for the indices
+    /// [`batch_indices`] gives.
+    pub fn over(seed: u64, values: Vec<T>, batch: usize) -> Self {
+        assert!(!values.is_empty(), "no rays to draw from");
+        debug_assert!(
+            values.windows(2).all(|w| w[0] < w[1]),
+            "values not ascending"
+        );
         Self {
             seed,
-            batch: batch.min(total),
+            batch: batch.min(values.len()),
             epoch: None,
-            order: (0..total).collect(),
+            order: values,
         }
     }
 
-    /// The indices of `iteration` (equal to `batch_indices(seed, iteration, total, batch)`).
-    pub fn indices(&mut self, iteration: usize) -> &[usize] {
+    /// The values of `iteration`'s batch.
+    pub fn indices(&mut self, iteration: usize) -> &[T] {
         let total = self.order.len();
         let per_epoch = total / self.batch;
         let epoch = iteration / per_epoch;
         if self.epoch != Some(epoch) {
-            self.order.iter_mut().enumerate().for_each(|(i, o)| *o = i);
+            if self.epoch.is_some() {
+                self.order.sort_unstable();
+            }
             // Hash the (seed, epoch) pair first: SplitMix streams seeded `k * GOLDEN` apart are
             // the same stream shifted by k, which would make consecutive epochs' orders nearly
             // equal.
@@ -298,6 +314,19 @@ mod tests {
         for it in (0..23).chain([2, 17, 0]) {
             let fresh = BatchOrder::new(4, 53, 10).indices(it).to_vec();
             assert_eq!(order.indices(it), &fresh[..], "iteration {it}");
+        }
+    }
+
+    #[test]
+    fn an_order_over_values_gives_the_values_at_the_shuffled_indices() {
+        let values: Vec<u32> = (0..53u32).map(|i| 7 + 3 * i).collect();
+        let mut order = BatchOrder::over(4, values.clone(), 10);
+        for it in (0..23).chain([2, 17, 0]) {
+            let expected: Vec<u32> = batch_indices(4, it, 53, 10)
+                .iter()
+                .map(|&i| values[i])
+                .collect();
+            assert_eq!(order.indices(it), &expected[..], "iteration {it}");
         }
     }
 

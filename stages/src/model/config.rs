@@ -372,6 +372,36 @@ pub struct TrainConfig {
     /// 2.90; with stereo to 6 m 3.29 -> 3.25) but costs `street0` 0.17 m and 2.3 mIoU at 1700
     /// steps (86.8 against 89.1), hence not the default (README, drift section).
     pub jitter_labels: JitterLabels,
+    /// The window and labels of the jittered rays once training has gone over every ray more
+    /// than `after_passes` times (`null`: never). Late passes over few pixels fit the pseudo
+    /// labels' boundary mistakes ray by ray and the depth drifts (README, drift section); a
+    /// 0.5-px window with `bilinear` labels stops that, but from the start it costs `street0`
+    /// 2.3 mIoU at the default budget. From the 8th pass on it leaves the default budget (6.6
+    /// passes on the 1/8-scale street) as it was; a full-size run (0.12 passes) never gets there.
+    pub late_jitter: Option<LateJitter>,
+}
+
+/// See [`TrainConfig::late_jitter`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LateJitter {
+    /// Passes over the training rays (iterations x rays per batch / training rays) after which
+    /// the two settings below replace `pixel_jitter` and `jitter_labels`.
+    pub after_passes: f32,
+    /// Window width in pixels, as `pixel_jitter`.
+    pub pixel_jitter: f32,
+    /// Labels of the jittered rays, as `jitter_labels`.
+    pub jitter_labels: JitterLabels,
+}
+
+impl Default for LateJitter {
+    fn default() -> Self {
+        Self {
+            after_passes: 8.0,
+            pixel_jitter: 0.5,
+            jitter_labels: JitterLabels::Bilinear,
+        }
+    }
 }
 
 /// See [`TrainConfig::jitter_labels`].
@@ -403,11 +433,40 @@ impl Default for TrainConfig {
             label_eps: 0.3,
             pixel_jitter: 0.25,
             jitter_labels: JitterLabels::Pixel,
+            late_jitter: Some(LateJitter::default()),
         }
     }
 }
 
+/// The window and labels of `pixel_jitter` / `jitter_labels` (under `prefix`) make sense.
+fn check_jitter(prefix: &str, width: f32, labels: JitterLabels) -> Result<(), ModelError> {
+    if !(width.is_finite() && (0.0..=1.0).contains(&width)) {
+        return Err(invalid(format!(
+            "{prefix}pixel_jitter = {width} must be in [0, 1] (pixels)"
+        )));
+    }
+    if labels == JitterLabels::Bilinear && width == 0.0 {
+        return Err(invalid(format!(
+            "{prefix}jitter_labels = bilinear labels jittered rays by their point, but \
+             {prefix}pixel_jitter = 0 casts every ray through its pixel's centre: set it > 0 \
+             (e.g. 0.5)"
+        )));
+    }
+    Ok(())
+}
+
 impl TrainConfig {
+    /// The jitter window (pixels) and labels of a batch drawn after `passes` passes over the
+    /// training rays.
+    pub fn jitter_at(&self, passes: f64) -> (f32, JitterLabels) {
+        match &self.late_jitter {
+            Some(late) if passes >= late.after_passes as f64 => {
+                (late.pixel_jitter, late.jitter_labels)
+            }
+            _ => (self.pixel_jitter, self.jitter_labels),
+        }
+    }
+
     /// Checks ranges; errors name the parameter.
     pub fn validate(&self) -> Result<(), ModelError> {
         self.field.validate()?;
@@ -426,17 +485,15 @@ impl TrainConfig {
                 self.label_eps
             )));
         }
-        if !(self.pixel_jitter.is_finite() && (0.0..=1.0).contains(&self.pixel_jitter)) {
-            return Err(invalid(format!(
-                "pixel_jitter = {} must be in [0, 1] (pixels)",
-                self.pixel_jitter
-            )));
-        }
-        if self.jitter_labels == JitterLabels::Bilinear && self.pixel_jitter == 0.0 {
-            return Err(invalid(
-                "jitter_labels = bilinear labels jittered rays by their point, but pixel_jitter = 0 \
-                 casts every ray through its pixel's centre: set pixel_jitter > 0 (e.g. 0.5)",
-            ));
+        check_jitter("", self.pixel_jitter, self.jitter_labels)?;
+        if let Some(late) = &self.late_jitter {
+            if !(late.after_passes.is_finite() && late.after_passes >= 0.0) {
+                return Err(invalid(format!(
+                    "late_jitter.after_passes = {} must be finite and >= 0",
+                    late.after_passes
+                )));
+            }
+            check_jitter("late_jitter.", late.pixel_jitter, late.jitter_labels)?;
         }
         if !(self.field_margin.is_finite() && self.field_margin >= 0.0) {
             return Err(invalid(format!(
@@ -533,6 +590,52 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("bilinar") && e.contains("bilinear"), "{e}");
+    }
+
+    #[test]
+    fn late_jitter_takes_over_after_its_passes_and_is_checked() {
+        let c = TrainConfig::default();
+        assert_eq!(c.jitter_at(0.0), (0.25, JitterLabels::Pixel));
+        assert_eq!(c.jitter_at(7.99), (0.25, JitterLabels::Pixel));
+        assert_eq!(c.jitter_at(8.0), (0.5, JitterLabels::Bilinear));
+        let off: TrainConfig = serde_json::from_str(r#"{"late_jitter": null}"#).unwrap();
+        assert_eq!(off.jitter_at(1e6), (0.25, JitterLabels::Pixel));
+        // Settings not given keep their defaults (`--set train.train.late_jitter.after_passes=12`).
+        let partial: TrainConfig =
+            serde_json::from_str(r#"{"late_jitter": {"after_passes": 2}}"#).unwrap();
+        assert_eq!(partial.jitter_at(2.0), (0.5, JitterLabels::Bilinear));
+        assert_eq!(partial.jitter_at(1.9), (0.25, JitterLabels::Pixel));
+        assert!(serde_json::from_str::<TrainConfig>(r#"{"late_jitter": {"after": 2}}"#).is_err());
+        for (late, key) in [
+            (
+                LateJitter {
+                    after_passes: f32::NAN,
+                    ..Default::default()
+                },
+                "late_jitter.after_passes",
+            ),
+            (
+                LateJitter {
+                    pixel_jitter: 2.0,
+                    ..Default::default()
+                },
+                "late_jitter.pixel_jitter",
+            ),
+            (
+                LateJitter {
+                    pixel_jitter: 0.0,
+                    ..Default::default()
+                },
+                "late_jitter.jitter_labels",
+            ),
+        ] {
+            let bad = TrainConfig {
+                late_jitter: Some(late),
+                ..Default::default()
+            };
+            let e = bad.validate().unwrap_err().to_string();
+            assert!(e.contains(key), "{e}");
+        }
     }
 
     #[test]
