@@ -376,7 +376,7 @@ pub struct TrainConfig {
     /// than `after_passes` times (`null`: never). Late passes over few pixels fit the pseudo
     /// labels' boundary mistakes ray by ray and the depth drifts (README, drift section); a
     /// 0.5-px window with `bilinear` labels stops that, but from the start it costs `street0`
-    /// 2.3 mIoU at the default budget. From the 8th pass on it leaves the default budget (6.6
+    /// 2.3 mIoU at the default budget. After 8 passes it leaves the default budget (7.7
     /// passes on the 1/8-scale street) as it was; a full-size run (0.12 passes) never gets there.
     pub late_jitter: Option<LateJitter>,
 }

@@ -207,6 +207,7 @@ fn no_engine_silently_ignores_an_option() {
         match key {
             "field.encoding" => Some(vec![Value::from("pe")]),
             "jitter_labels" => Some(vec![Value::from("bilinear")]),
+            "late_jitter.jitter_labels" => Some(vec![Value::from("pixel")]),
             _ => None,
         }
     };
