@@ -129,7 +129,7 @@ impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
     // 14: the train log has no wall-clock column (the same seed and config give the same bytes;
-    // the runner times the stage).
+    // the runner times the stage); `late_jitter` (on by default) changes runs past 8 passes.
     const VERSION: u32 = 14;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
