@@ -211,7 +211,7 @@ impl TypedStage for Train {
         // SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share all
         // but one ray: training saw only ~iterations + batch distinct rays.)
         let next_batch = |it: usize| {
-            let ids: Vec<u32> = order.indices(it).to_vec();
+            let ids: Vec<u32> = order.batch(it).to_vec();
             let jitter =
                 SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                     .next_u64();

@@ -222,7 +222,7 @@ impl RayBatch {
 /// consumed in order, so every ray is seen once per epoch and a run is reproducible.
 pub fn batch_indices(seed: u64, iteration: usize, total: usize, batch: usize) -> Vec<usize> {
     BatchOrder::new(seed, total, batch)
-        .indices(iteration)
+        .batch(iteration)
         .to_vec()
 }
 
@@ -261,7 +261,7 @@ impl<T: Copy + Ord> BatchOrder<T> {
     }
 
     /// The values of `iteration`'s batch.
-    pub fn indices(&mut self, iteration: usize) -> &[T] {
+    pub fn batch(&mut self, iteration: usize) -> &[T] {
         let total = self.order.len();
         let per_epoch = total / self.batch;
         let epoch = iteration / per_epoch;
@@ -312,8 +312,8 @@ mod tests {
         let mut order = BatchOrder::new(4, 53, 10);
         // across epochs (5 batches each, 3 rays left over) and back to an earlier one
         for it in (0..23).chain([2, 17, 0]) {
-            let fresh = BatchOrder::new(4, 53, 10).indices(it).to_vec();
-            assert_eq!(order.indices(it), &fresh[..], "iteration {it}");
+            let fresh = BatchOrder::new(4, 53, 10).batch(it).to_vec();
+            assert_eq!(order.batch(it), &fresh[..], "iteration {it}");
         }
     }
 
@@ -326,7 +326,7 @@ mod tests {
                 .iter()
                 .map(|&i| values[i])
                 .collect();
-            assert_eq!(order.indices(it), &expected[..], "iteration {it}");
+            assert_eq!(order.batch(it), &expected[..], "iteration {it}");
         }
     }
 
