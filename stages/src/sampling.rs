@@ -126,6 +126,18 @@ pub struct SampleBatch {
     pub z_scale: Vec<f32>,
 }
 
+impl SampleBatch {
+    /// Per sample: whether it lies in its ray's sky interval (the fixed field is one-hot sky,
+    /// the last class, there and only there).
+    pub fn in_sky(&self) -> Vec<bool> {
+        let c = self.classes;
+        self.fixed_semantic
+            .chunks_exact(c)
+            .map(|row| row[c - 1] == 1.0)
+            .collect()
+    }
+}
+
 /// Places the samples of one ray with intervals `iv`: writes `t` and `delta` (`per_ray`
 /// entries each, padding with delta 0 at the end). `jitter` = None puts samples at stratum
 /// centres (rendering).

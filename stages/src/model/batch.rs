@@ -53,6 +53,16 @@ pub struct RayBatch {
 }
 
 impl RaySamples {
+    /// Per sample: whether it lies in its ray's sky interval (its fixed field is one-hot sky,
+    /// the last class; no primitive reaches into the sky interval).
+    pub fn in_sky(&self) -> Vec<bool> {
+        let c = self.classes;
+        self.fixed_semantics
+            .chunks_exact(c)
+            .map(|row| row[c - 1] == 1.0)
+            .collect()
+    }
+
     /// Checks lengths and values; errors name the field.
     pub fn validate(&self) -> Result<(), String> {
         let (r, s, c) = (self.rays, self.samples, self.classes);

@@ -24,6 +24,21 @@ pub enum EncodingKind {
     Pe,
 }
 
+/// What the colour head sees at samples in a ray's sky interval.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum SkyColourInput {
+    /// The geometry features and the view direction, as everywhere (the paper).
+    #[default]
+    Field,
+    /// The view direction only (the geometry features are zeroed): the sky is a function of
+    /// direction, like light from infinitely far away, so a ray's colour can be put in its sky
+    /// interval only where that colour is the sky's in that direction. Without it, density in
+    /// the sky interval can copy any colour, and nothing but a pseudo label tells a coarse
+    /// primitive's empty top (filled with sky-coloured density) from the sky behind it.
+    Direction,
+}
+
 /// Parameters of the multi-resolution grid.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -124,6 +139,9 @@ pub struct FieldConfig {
     pub head_layers: usize,
     /// Density = softplus(raw + density_shift); -1 gives 0.31 per unit length at init.
     pub density_shift: f32,
+    /// What the colour head sees in the sky interval: `field` (default, the paper) or
+    /// `direction` ([`SkyColourInput::Direction`]; for cameras without pseudo labels).
+    pub sky_colour: SkyColourInput,
 }
 
 impl Default for FieldConfig {
@@ -138,6 +156,7 @@ impl Default for FieldConfig {
             geo_features: 15,
             head_layers: 1,
             density_shift: -1.0,
+            sky_colour: SkyColourInput::Field,
         }
     }
 }

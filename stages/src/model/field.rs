@@ -34,12 +34,15 @@ pub struct FieldSamples {
 pub trait Field: Sync {
     fn spec(&self) -> &FieldSpec;
     /// Outputs at `positions` (`[R*S, 3]`, scene frame) of rays with view `directions` (`[R,
-    /// 3]`, any length) and `samples` points each.
+    /// 3]`, any length) and `samples` points each; `in_sky` (`[R*S]`, or empty for none) says
+    /// which samples lie in their ray's sky interval (their colour sees the direction only
+    /// under [`crate::model::SkyColourInput::Direction`]).
     fn evaluate(
         &self,
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
     ) -> FieldSamples;
 }

@@ -9,6 +9,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::composite::{Composite, Compositor, RaySums};
+use super::config::SkyColourInput;
 use super::field::{Field, Heads};
 use crate::geometry::{Camera, Lens};
 use crate::labels;
@@ -328,7 +329,8 @@ pub fn composite_rays(
     let mut state = vec![RaySums::default(); chunk.len()];
     let intervals: Vec<Intervals> = chunk.iter().map(|&r| rays.intervals(r)).collect();
     let mut alive: Vec<usize> = (0..chunk.len()).collect();
-    let (mut pos, mut dirs) = (Vec::new(), Vec::new());
+    let (mut pos, mut dirs, mut in_sky) = (Vec::new(), Vec::new(), Vec::new());
+    let direction_sky = field.spec().config.sky_colour == SkyColourInput::Direction;
     let mut s0 = 0;
     for &k in MARCH_ROUNDS.iter().chain(std::iter::repeat(&MARCH_ROUND)) {
         if s0 >= s_n || alive.is_empty() {
@@ -337,11 +339,16 @@ pub fn composite_rays(
         let k = k.min(s_n - s0);
         pos.clear();
         dirs.clear();
+        in_sky.clear();
         for &r in &alive {
             pos.extend_from_slice(&b.positions[(r * s_n + s0) * 3..(r * s_n + s0 + k) * 3]);
             dirs.extend_from_slice(&b.dirs[r * 3..r * 3 + 3]);
+            if direction_sky && heads.rgb {
+                let ts = &b.t[r * s_n + s0..r * s_n + s0 + k];
+                in_sky.extend(ts.iter().map(|&t| intervals[r].in_sky(t)));
+            }
         }
-        let got = field.evaluate(&pos, &dirs, k, heads);
+        let got = field.evaluate(&pos, &dirs, k, &in_sky, heads);
         let m = alive.len() * k;
         if got.sigma.len() != m
             || got.logits.len() != m * c_n

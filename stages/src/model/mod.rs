@@ -39,7 +39,7 @@ pub(crate) mod testing;
 pub use batch::{batch_indices, BatchOrder, RayBatch, RaySamples, RayTargets};
 pub use config::{
     EncodingKind, FieldConfig, FieldSpec, GridConfig, JitterLabels, LateJitter, LossWeights,
-    TrainConfig,
+    SkyColourInput, TrainConfig,
 };
 pub use engine::{Engine, EngineChoice};
 pub use error::{ModelError, TrainError};

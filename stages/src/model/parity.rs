@@ -64,7 +64,7 @@ fn train(
 fn render(field: &dyn Field, set: &RaySet) -> Vec<(usize, f32, Option<usize>)> {
     let ids: Vec<u32> = (0..set.origin.len() as u32).collect();
     let b = sample_batch(set, &ids, &toy_sampling(), None).unwrap();
-    let out = field.evaluate(&b.positions, &b.dirs, b.samples, Heads::ALL);
+    let out = field.evaluate(&b.positions, &b.dirs, b.samples, &b.in_sky(), Heads::ALL);
     let (s, c) = (b.samples, set.prims.classes.len());
     (0..b.rays)
         .map(|i| {
@@ -206,6 +206,7 @@ fn no_engine_silently_ignores_an_option() {
     let alternatives = |key: &str| -> Option<Vec<Value>> {
         match key {
             "field.encoding" => Some(vec![Value::from("pe")]),
+            "field.sky_colour" => Some(vec![Value::from("direction")]),
             "jitter_labels" => Some(vec![Value::from("bilinear")]),
             "late_jitter.jitter_labels" => Some(vec![Value::from("pixel")]),
             _ => None,
@@ -474,11 +475,13 @@ impl Field for Counting<'_> {
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
     ) -> super::field::FieldSamples {
         self.samples
             .fetch_add(positions.len() / 3, std::sync::atomic::Ordering::Relaxed);
-        self.field.evaluate(positions, directions, samples, heads)
+        self.field
+            .evaluate(positions, directions, samples, in_sky, heads)
     }
 }
 
@@ -513,7 +516,7 @@ fn marching_rays_render_the_labels_of_evaluating_every_sample() {
                 field: field.as_ref(),
                 samples: 0.into(),
             };
-            let full = field.evaluate(&b.positions, &b.dirs, s, Heads::ALL);
+            let full = field.evaluate(&b.positions, &b.dirs, s, &[], Heads::ALL);
             let exact: Vec<_> = (0..b.rays)
                 .map(|i| {
                     let r = i * s..(i + 1) * s;

@@ -121,6 +121,20 @@ impl Intervals<'_> {
     pub fn hits_anything(&self) -> bool {
         !self.t_in.is_empty()
     }
+
+    /// Whether distance `t` lies in the sky interval and in no primitive (where the fixed
+    /// field is one-hot sky).
+    pub fn in_sky(&self, t: f32) -> bool {
+        let [s0, s1] = self.sky;
+        s1 > s0
+            && t >= s0
+            && t <= s1
+            && !self
+                .t_in
+                .iter()
+                .zip(self.t_out)
+                .any(|(&a, &b)| t >= a && t <= b)
+    }
 }
 
 /// What a ray is trained towards (rendering rays have none: zeros and [`NONE`]).

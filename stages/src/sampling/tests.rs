@@ -99,6 +99,33 @@ fn fixed_fields_follow_the_intervals() {
     assert!(!fixed_instance_at(prims, &iv, 8.0, &mut inst));
 }
 
+/// `Intervals::in_sky` (what rendering tells the field) is where the fixed field is one-hot
+/// sky (what training tells it, `SampleBatch::in_sky`), at the interval ends too.
+#[test]
+fn sky_samples_are_where_the_fixed_field_is_sky() {
+    let set = many();
+    let mut out = [0.0; 3];
+    for r in (0..300).step_by(7) {
+        let iv = set.intervals(r);
+        for k in 0..=700 {
+            let t = k as f32 * 0.1;
+            fixed_semantic_at(&set.prims, &iv, t, &mut out);
+            assert_eq!(iv.in_sky(t), out == [0.0, 0.0, 1.0], "ray {r}, t {t}");
+        }
+        for t in [iv.sky[0], iv.sky[1], iv.t_out[0]] {
+            fixed_semantic_at(&set.prims, &iv, t, &mut out);
+            assert_eq!(iv.in_sky(t), out == [0.0, 0.0, 1.0], "ray {r}, end {t}");
+        }
+    }
+    let b = sample_batch(&set, &[0, 1, 2], &SamplingParams::default(), Some(1)).unwrap();
+    let flags = b.in_sky();
+    assert!(flags.contains(&true) && flags.contains(&false));
+    for (i, &f) in flags.iter().enumerate() {
+        let iv = set.intervals(b.ray_ids[i / b.samples] as usize);
+        assert_eq!(f, iv.in_sky(b.t[i]) && b.deltas[i] > 0.0, "sample {i}");
+    }
+}
+
 /// The sparse members are exactly the non-zero entries of the dense distributions, with the
 /// same equal share, at every sample of many random plans.
 #[test]

@@ -18,7 +18,7 @@ use burn::module::{Module, Param};
 use burn::tensor::activation::{relu, sigmoid, softplus};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-use crate::model::config::{EncodingKind, FieldSpec};
+use crate::model::config::{EncodingKind, FieldSpec, SkyColourInput};
 use crate::model::encoding::{grid_lookup, positional_encoding, unit_direction, GridLookup};
 use crate::model::error::ModelError;
 use crate::model::params::{self, NamedWeight};
@@ -165,6 +165,9 @@ pub struct FieldInput {
     pub positions: PreparedPositions,
     /// Encoded view directions, `[points, direction_dim]` flattened; `None` skips colour.
     pub directions: Option<Vec<f32>>,
+    /// Per point, 1 where the colour head sees the geometry features and 0 where it sees the
+    /// direction only (sky samples under `sky_colour: direction`); `None`: 1 everywhere.
+    pub colour_geometry: Option<Vec<f32>>,
 }
 
 /// Outputs of the field per point.
@@ -221,19 +224,27 @@ impl RadianceField {
     }
 
     /// Normalises and encodes on the host. Each direction row applies to `samples_per_direction`
-    /// consecutive points (the samples of one ray).
+    /// consecutive points (the samples of one ray); `in_sky` flags the points in their ray's
+    /// sky interval (or is empty: none).
     ///
     /// # Shapes
     /// `positions`: `[points, 3]` (scene frame); `directions`: `[points / samples_per_direction,
-    /// 3]` (need not be unit length).
+    /// 3]` (need not be unit length); `in_sky`: `[points]` or empty.
     pub fn prepare(
         &self,
         positions: &[f32],
         directions: Option<&[f32]>,
         samples_per_direction: usize,
+        in_sky: &[bool],
     ) -> FieldInput {
         let spec = &self.spec;
         let points = positions.len() / 3;
+        let colour_geometry = (spec.config.sky_colour == SkyColourInput::Direction
+            && in_sky.contains(&true))
+        .then(|| {
+            assert_eq!(in_sky.len(), points, "in_sky must have one flag per point");
+            in_sky.iter().map(|&s| if s { 0.0 } else { 1.0 }).collect()
+        });
         let mut unit = Vec::with_capacity(positions.len());
         for p in positions.chunks_exact(3) {
             for (a, &x) in p.iter().enumerate() {
@@ -271,6 +282,7 @@ impl RadianceField {
             points,
             positions,
             directions,
+            colour_geometry,
         }
     }
 
@@ -296,9 +308,15 @@ impl RadianceField {
                     TensorData::new(dirs.clone(), [p, c.direction_dim()]),
                     &device,
                 );
-                Some(sigmoid(
-                    self.colour.forward(Tensor::cat(vec![geo.clone(), d], 1)),
-                ))
+                let seen = match &input.colour_geometry {
+                    Some(m) => {
+                        let m: Tensor<2> =
+                            Tensor::from_data(TensorData::new(m.clone(), [p, 1]), &device);
+                        geo.clone() * m
+                    }
+                    None => geo.clone(),
+                };
+                Some(sigmoid(self.colour.forward(Tensor::cat(vec![seen, d], 1))))
             }
             _ => None,
         };
@@ -412,7 +430,7 @@ mod tests {
                 0.1f32, 0.2, 0.3, -0.5, 0.9, 0.0, 5.0, 5.0, 5.0, 0.0, 0.0, 0.0,
             ];
             let dirs = [0.0f32, 0.0, 1.0, 1.0, 0.0, 0.0];
-            let input = f.prepare(&pos, Some(&dirs), 2);
+            let input = f.prepare(&pos, Some(&dirs), 2, &[]);
             let out = f.forward(&input, &[FieldHead::Rgb, FieldHead::Semantics]);
             let d = out.density.into_data().try_to_vec::<f32>().unwrap();
             assert!(d.iter().all(|&x| x > 0.01 && x.is_finite()), "{d:?}");

@@ -23,6 +23,7 @@ impl Field for RadianceField {
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
     ) -> FieldSamples {
         let mut want = Vec::new();
@@ -32,7 +33,7 @@ impl Field for RadianceField {
         if heads.semantics {
             want.push(FieldHead::Semantics);
         }
-        let input = self.prepare(positions, Some(directions), samples);
+        let input = self.prepare(positions, Some(directions), samples, in_sky);
         let o = self.forward(&input, &want);
         FieldSamples {
             sigma: read(o.density),

@@ -105,7 +105,7 @@ fn losses(
     let directions = heads
         .contains(&FieldHead::Rgb)
         .then_some(s.directions.as_slice());
-    let input = field.prepare(&s.positions, directions, n);
+    let input = field.prepare(&s.positions, directions, n, &s.in_sky());
     let out = field.forward(&input, &heads);
     let density = out.density.reshape([r, n]); // [rays, samples]
     let w = render_weights(density.clone(), bt.deltas);

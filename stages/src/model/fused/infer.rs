@@ -23,6 +23,7 @@ impl FusedField {
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
     ) -> FieldSamples {
         let rays = directions.len() / 3;
@@ -31,6 +32,10 @@ impl FusedField {
             positions.len(),
             n * 3,
             "positions must be [rays, samples, 3]"
+        );
+        assert!(
+            in_sky.is_empty() || in_sky.len() == n,
+            "in_sky must be empty or [rays, samples]"
         );
         let c = self.spec.num_classes;
         let chunk = 256;
@@ -59,6 +64,7 @@ impl FusedField {
                     &positions[r0 * samples * 3..r1 * samples * 3],
                     &directions[r0 * 3..r1 * 3],
                     samples,
+                    in_sky.get(r0 * samples..r1 * samples).unwrap_or(&[]),
                     heads,
                     false,
                 );
@@ -85,8 +91,9 @@ impl Field for FusedField {
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
     ) -> FieldSamples {
-        FusedField::evaluate(self, positions, directions, samples, heads)
+        FusedField::evaluate(self, positions, directions, samples, in_sky, heads)
     }
 }

@@ -10,7 +10,7 @@ use super::mlp::{self, add_column_sums, gemm, grow, View};
 use super::work::{RayState, Sums, Work};
 use crate::model::batch::{is_one_hot, RayBatch};
 use crate::model::composite::softmax_into;
-use crate::model::config::TrainConfig;
+use crate::model::config::{SkyColourInput, TrainConfig};
 use crate::model::field::Heads;
 
 /// Loss weights and normalisers of one step (shared by all partitions).
@@ -57,15 +57,23 @@ impl Work {
         }
         let (p0, p1) = (r0 * ns, r1 * ns);
         let n = p1 - p0;
+        let mut in_sky = std::mem::take(&mut self.in_sky);
+        in_sky.clear();
+        if f.spec.config.sky_colour == SkyColourInput::Direction {
+            let fixed = s.fixed_semantics[p0 * c..p1 * c].chunks_exact(c);
+            in_sky.extend(fixed.map(|row| row[sky] == 1.0));
+        }
         self.forward_field(
             f,
             params,
             &s.positions[p0 * 3..p1 * 3],
             &s.directions[r0 * 3..r1 * 3],
             ns,
+            &in_sky,
             heads,
             true,
         );
+        self.in_sky = in_sky;
         if heads.semantics {
             grow(&mut self.probs, n * c);
             let logits = &self.sem[f.semantic.len() - 1];
@@ -365,6 +373,23 @@ impl Work {
             } else {
                 self.dcol[..n * 3].copy_from_slice(&self.drgb[..n * 3]);
             }
+            // The direction part sees the sum of its ray's samples.
+            grow(&mut self.dray, rays * h);
+            for (r, sum) in self.dray[..rays * h].chunks_exact_mut(h).enumerate() {
+                sum.iter_mut().for_each(|v| *v = 0.0);
+                for row in self.dcol[r * ns * h..(r + 1) * ns * h].chunks_exact(h) {
+                    sum.iter_mut().zip(row).for_each(|(a, b)| *a += b);
+                }
+            }
+            // Direction-only samples: nothing flows to the geometry part.
+            for (row, &d) in self.dcol[..n * h]
+                .chunks_exact_mut(h)
+                .zip(&self.direction_only)
+            {
+                if d {
+                    row.iter_mut().for_each(|v| *v = 0.0);
+                }
+            }
             let dcol = &self.dcol[..n * h];
             let geo = &self.trunk[trunk_out_idx][1..];
             let (wg, wd) = self.grads[l0.weight].split_at_mut(g * h);
@@ -382,14 +407,6 @@ impl Work {
                 wg,
                 h,
             );
-            // The direction part sees the sum of its ray's samples.
-            grow(&mut self.dray, rays * h);
-            for (r, sum) in self.dray[..rays * h].chunks_exact_mut(h).enumerate() {
-                sum.iter_mut().for_each(|v| *v = 0.0);
-                for row in dcol[r * ns * h..(r + 1) * ns * h].chunks_exact(h) {
-                    sum.iter_mut().zip(row).for_each(|(a, b)| *a += b);
-                }
-            }
             gemm(
                 dd,
                 rays,

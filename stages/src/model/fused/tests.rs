@@ -3,7 +3,7 @@
 use super::*;
 use crate::model::batch::RayBatch;
 use crate::model::burn::{reference_gradients, Backend, FieldHead, RadianceField};
-use crate::model::config::{FieldConfig, GridConfig, LossWeights, TrainConfig};
+use crate::model::config::{FieldConfig, GridConfig, LossWeights, SkyColourInput, TrainConfig};
 use crate::model::field::Heads;
 use crate::model::loss::LossTerm;
 use crate::model::params::{self, NamedWeight};
@@ -16,6 +16,11 @@ fn toy_fields() -> (RadianceField, FusedField) {
 
 /// [`toy_fields`] with `head_layers` hidden layers in the colour and semantic heads.
 fn toy_fields_with_heads(head_layers: usize) -> (RadianceField, FusedField) {
+    toy_fields_where(head_layers, SkyColourInput::Field)
+}
+
+/// [`toy_fields_with_heads`] whose colour head sees `sky_colour` in the sky interval.
+fn toy_fields_where(head_layers: usize, sky_colour: SkyColourInput) -> (RadianceField, FusedField) {
     let mut spec = toy_spec();
     spec.config = FieldConfig {
         grid: GridConfig {
@@ -29,6 +34,7 @@ fn toy_fields_with_heads(head_layers: usize) -> (RadianceField, FusedField) {
         geo_features: 7,
         trunk_layers: 2,
         head_layers,
+        sky_colour,
         ..Default::default()
     };
     let weights = lively(params::initial(&spec), 9);
@@ -166,9 +172,9 @@ fn inference_matches_the_burn_forward() {
         rgb: true,
         semantics: true,
     };
-    let out = fused.evaluate(&s.positions, &s.directions, s.samples, heads);
+    let out = fused.evaluate(&s.positions, &s.directions, s.samples, &s.in_sky(), heads);
     let (sigma, rgb, logits) = (out.sigma, out.rgb, out.logits);
-    let input = burn.prepare(&s.positions, Some(&s.directions), s.samples);
+    let input = burn.prepare(&s.positions, Some(&s.directions), s.samples, &s.in_sky());
     let o = burn.forward(&input, &[FieldHead::Rgb, FieldHead::Semantics]);
     let read1 = |t: burn::tensor::Tensor<1>| t.into_data().try_to_vec::<f32>().unwrap();
     let read2 = |t: burn::tensor::Tensor<2>| t.into_data().try_to_vec::<f32>().unwrap();
@@ -184,6 +190,73 @@ fn inference_matches_the_burn_forward() {
                 "{name}: {x} vs {y}"
             );
         }
+    }
+}
+
+/// `sky_colour: direction`: both engines give every sky sample of a direction one colour
+/// (whatever its position), the same colour, and the same gradients (the colour loss no longer
+/// reaches the trunk through sky samples), which differ from `field`'s.
+#[test]
+fn a_direction_only_sky_colour_is_the_same_in_both_engines_and_ignores_position() {
+    let batch = varied_batch();
+    let s = &batch.samples;
+    let in_sky = s.in_sky();
+    assert!(in_sky.contains(&true) && in_sky.contains(&false));
+    let (burn, fused) = toy_fields_where(1, SkyColourInput::Direction);
+    let out = fused.evaluate(&s.positions, &s.directions, s.samples, &in_sky, Heads::ALL);
+    let input = burn.prepare(&s.positions, Some(&s.directions), s.samples, &in_sky);
+    let o = burn.forward(&input, &[FieldHead::Rgb]);
+    let want = o.rgb.unwrap().into_data().try_to_vec::<f32>().unwrap();
+    let worst = out.rgb.iter().zip(&want).map(|(a, b)| (a - b).abs());
+    assert!(worst.fold(0f32, f32::max) < 1e-5);
+    // Every toy ray looks along +z: one sky colour, and varied colours elsewhere.
+    let colour = |i: usize| &out.rgb[i * 3..i * 3 + 3];
+    let first = in_sky.iter().position(|&x| x).unwrap();
+    for (i, _) in in_sky.iter().enumerate().filter(|(_, &x)| x) {
+        assert_eq!(colour(i), colour(first), "sky sample {i}");
+    }
+    let (_, field_fused) = toy_fields_where(1, SkyColourInput::Field);
+    let by_field =
+        field_fused.evaluate(&s.positions, &s.directions, s.samples, &in_sky, Heads::ALL);
+    let moved = (0..in_sky.len())
+        .filter(|&i| in_sky[i] && by_field.rgb[i * 3..i * 3 + 3] != *colour(first))
+        .count();
+    assert!(
+        moved > 0,
+        "under `field` the sky colour depends on position"
+    );
+    for (i, _) in in_sky.iter().enumerate().filter(|(_, &x)| !x) {
+        assert_eq!(
+            colour(i),
+            &by_field.rgb[i * 3..i * 3 + 3],
+            "non-sky sample {i}"
+        );
+    }
+
+    let config = TrainConfig {
+        sigma_threshold: 0.3,
+        ..Default::default()
+    };
+    for head_layers in [0, 1, 2] {
+        let (burn, fused) = toy_fields_where(head_layers, SkyColourInput::Direction);
+        let (_, want) = reference_gradients(&burn, &batch, &config);
+        let mut trainer = FusedTrainer::new(config.clone(), fused).unwrap();
+        let got = trainer.gradients(&batch).unwrap();
+        assert_close(
+            &format!("direction sky, head_layers {head_layers}"),
+            &got.grads,
+            &want,
+        );
+        let (burn, _) = toy_fields_where(head_layers, SkyColourInput::Field);
+        let (_, by_field) = reference_gradients(&burn, &batch, &config);
+        let trunk = |g: &[NamedWeight]| {
+            g.iter()
+                .find(|w| w.name == "trunk.layers.0.weight")
+                .unwrap()
+                .values
+                .clone()
+        };
+        assert_ne!(trunk(&want), trunk(&by_field), "head_layers {head_layers}");
     }
 }
 

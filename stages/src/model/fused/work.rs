@@ -4,6 +4,7 @@ use super::field::FusedField;
 use rayon::prelude::*;
 
 use super::mlp::{self, add_bias, gemm, grow, relu_in_place, View};
+use crate::model::config::SkyColourInput;
 use crate::model::encoding::{lookup_level, positional_encoding, unit_direction};
 use crate::model::field::Heads;
 
@@ -61,6 +62,11 @@ pub(super) struct Work {
     pub(super) drgb: Vec<f32>,
     pub(super) grads: Vec<Vec<f32>>,
     pub(super) sums: Sums,
+    /// Per sample of the last forward pass: the colour head saw the direction only (a sky
+    /// sample under `sky_colour: direction`); empty: no sample did.
+    pub(super) direction_only: Vec<bool>,
+    /// Scratch for a training step's sky flags.
+    pub(super) in_sky: Vec<bool>,
 }
 
 pub(super) fn softplus(x: f32) -> f32 {
@@ -78,7 +84,8 @@ pub(super) fn sigmoid(x: f32) -> f32 {
 impl Work {
     /// Encoding, trunk, density and the requested heads for `positions` (`[n, 3]`) whose rays
     /// (`directions`, `[n / samples, 3]`) have `samples` points each; with `gradients`, also
-    /// the density's derivative the backward pass needs.
+    /// the density's derivative the backward pass needs. `in_sky` (`[n]` or empty): the
+    /// samples in their ray's sky interval.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn forward_field(
         &mut self,
@@ -87,12 +94,18 @@ impl Work {
         positions: &[f32],
         directions: &[f32],
         samples: usize,
+        in_sky: &[bool],
         heads: Heads,
         gradients: bool,
     ) {
         let spec = &f.spec;
         let c = &spec.config;
         let n = positions.len() / 3;
+        self.direction_only.clear();
+        if c.sky_colour == SkyColourInput::Direction && in_sky.contains(&true) {
+            assert_eq!(in_sky.len(), n, "in_sky must have one flag per sample");
+            self.direction_only.extend_from_slice(in_sky);
+        }
         let (levels, feats) = (c.grid.levels, c.grid.features_per_level);
         let e = levels * feats;
         let corners = levels * 8;
@@ -203,6 +216,12 @@ impl Work {
             let h0 = &mut first[0];
             grow(h0, n * h);
             gemm(n, g, h, geo, View::rows(&w0[..g * h], h), 0.0, h0, h);
+            // Sky samples under `sky_colour: direction`: the geometry part is zero.
+            for (row, &d) in h0[..n * h].chunks_exact_mut(h).zip(&self.direction_only) {
+                if d {
+                    row.iter_mut().for_each(|v| *v = 0.0);
+                }
+            }
             for (i, row) in h0[..n * h].chunks_exact_mut(h).enumerate() {
                 let d = &self.dir_term[(i / samples) * h..(i / samples + 1) * h];
                 row.iter_mut().zip(d).for_each(|(v, t)| *v += t);
