@@ -540,7 +540,8 @@ fn cmd_show(p: &Pipeline, stage: &str, table: Option<&str>, head: usize) -> Resu
         let batch = stored
             .rows(0..n, None)
             .map_err(|e| anyhow!("reading table `{name}` of stage `{stage}`: {e}"))?;
-        let opts = FormatOptions::default();
+        // A null shows as `null`, so every row has a value in every column.
+        let opts = FormatOptions::default().with_null("null");
         let fmts = batch
             .columns()
             .iter()

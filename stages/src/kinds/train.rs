@@ -128,9 +128,10 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
+    // 15: the train log has a `loss_sky_prior` column (null unless `losses.sky_prior` > 0).
     // 14: the train log has no wall-clock column (the same seed and config give the same bytes;
     // the runner times the stage); `late_jitter` (on by default) changes runs past 8 passes.
-    const VERSION: u32 = 14;
+    const VERSION: u32 = 15;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -267,7 +268,7 @@ struct LogColumns {
     lr: Vec<f64>,
     total: Vec<f32>,
     grad_norm: Vec<f32>,
-    terms: [Vec<Option<f32>>; 5],
+    terms: [Vec<Option<f32>>; LossTerm::ALL.len()],
 }
 
 impl LogColumns {

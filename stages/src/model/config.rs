@@ -283,6 +283,13 @@ pub struct LossWeights {
     pub rgb: f32,
     /// L_depth: squared error to stereo depth (paper: 0.1).
     pub depth: f32,
+    /// L_sky (default 0, off; not in the paper): on rays without a pseudo label (cameras
+    /// without a 2D network), `g(r) (1 - S_hat(sky))` with the gate `g(r) = exp(-|C* -
+    /// C_sky|^2 / sky_prior_colour^2)`, `C_sky` the mean colour of the ray's sky-interval
+    /// samples (detached). Where the ray's colour is the sky's, it prefers the sky interval to
+    /// sky-coloured density in a coarse primitive; use with `field.sky_colour: direction`, so
+    /// `C_sky` is the sky's colour in that direction.
+    pub sky_prior: f32,
 }
 
 impl Default for LossWeights {
@@ -293,6 +300,7 @@ impl Default for LossWeights {
             point_3d: 0.1,
             rgb: 1.0,
             depth: 0.1,
+            sky_prior: 0.0,
         }
     }
 }
@@ -306,6 +314,7 @@ impl LossWeights {
             LossTerm::Point3d => self.point_3d,
             LossTerm::Rgb => self.rgb,
             LossTerm::Depth => self.depth,
+            LossTerm::SkyPrior => self.sky_prior,
         }
     }
 
@@ -328,6 +337,8 @@ pub struct TrainConfig {
     pub losses: LossWeights,
     /// sigma_th of the L_3D point mask (paper: 0.1).
     pub sigma_threshold: f32,
+    /// Colour distance (RGB in [0, 1]) at which the gate of `losses.sky_prior` falls to 1/e.
+    pub sky_prior_colour: f32,
     /// Apply the ray mask u(r) to L_learned2D (false: every labelled ray counts; the ablation
     /// "without u(r)").
     pub ray_mask: bool,
@@ -438,6 +449,7 @@ impl Default for TrainConfig {
             field: FieldConfig::default(),
             losses: LossWeights::default(),
             sigma_threshold: 0.1,
+            sky_prior_colour: 0.1,
             ray_mask: true,
             lr: 2e-2,
             lr_final_factor: 0.1,
@@ -546,6 +558,9 @@ impl TrainConfig {
         }
         if self.rays_per_batch == 0 {
             return Err(invalid("rays_per_batch must be >= 1"));
+        }
+        if !(self.sky_prior_colour.is_finite() && self.sky_prior_colour > 0.0) {
+            return Err(invalid("sky_prior_colour must be finite and > 0"));
         }
         if !(self.sigma_threshold.is_finite() && self.sigma_threshold >= 0.0) {
             return Err(invalid("sigma_threshold must be finite and >= 0"));

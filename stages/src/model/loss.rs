@@ -21,18 +21,23 @@ pub enum LossTerm {
     Rgb,
     /// L_depth: squared error against stereo depth.
     Depth,
+    /// L_sky: on rays without a pseudo label, `g(r) (1 - S_hat(sky))`, the gate `g(r)` saying
+    /// how close the ray's colour is to its sky interval's (not in the paper).
+    SkyPrior,
 }
 
 impl LossTerm {
-    pub const ALL: [LossTerm; 5] = [
+    pub const ALL: [LossTerm; 6] = [
         LossTerm::Fixed2d,
         LossTerm::Learned2d,
         LossTerm::Point3d,
         LossTerm::Rgb,
         LossTerm::Depth,
+        LossTerm::SkyPrior,
     ];
 
-    /// Column name in the train log (`fixed_2d`, `learned_2d`, `point_3d`, `rgb`, `depth`).
+    /// Column name in the train log (`fixed_2d`, `learned_2d`, `point_3d`, `rgb`, `depth`,
+    /// `sky_prior`).
     pub fn name(self) -> &'static str {
         match self {
             LossTerm::Fixed2d => "fixed_2d",
@@ -40,6 +45,7 @@ impl LossTerm {
             LossTerm::Point3d => "point_3d",
             LossTerm::Rgb => "rgb",
             LossTerm::Depth => "depth",
+            LossTerm::SkyPrior => "sky_prior",
         }
     }
 }

@@ -94,6 +94,7 @@ pub fn toy_config() -> TrainConfig {
             point_3d: 1.0,
             rgb: 1.0,
             depth: 0.1,
+            sky_prior: 0.0,
         },
         ..Default::default()
     }

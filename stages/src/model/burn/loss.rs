@@ -68,6 +68,30 @@ pub fn depth_mse(depth: Tensor<1>, target: Tensor<1>, valid: Tensor<1>) -> Tenso
     ((depth - target).square() * valid).sum() / count
 }
 
+/// L_sky: mean over rays of `unlabelled * g * (1 - S_hat(sky))`, with the gate `g = exp(-|C*
+/// - C_sky|^2 / colour^2)` (0 for rays without sky samples) detached: it weighs rays, it is
+/// not optimised. `C_sky` is the mean colour of the ray's sky samples.
+///
+/// # Shapes
+/// `s_hat_sky`, `unlabelled`: `[rays]`; `rgb`: `[rays, samples, 3]`; `sky_mask`: `[rays,
+/// samples, 1]` (0/1); `target`: `[rays, 3]`.
+pub fn sky_prior(
+    s_hat_sky: Tensor<1>,
+    rgb: Tensor<3>,
+    sky_mask: Tensor<3>,
+    target: Tensor<2>,
+    unlabelled: Tensor<1>,
+    colour: f32,
+) -> Tensor<1> {
+    let rays = s_hat_sky.dims()[0];
+    let count = sky_mask.clone().sum_dim(1).reshape([rays, 1]); // [rays, 1]
+    let sky_rgb = (rgb * sky_mask).sum_dim(1).reshape([rays, 3]) / count.clone().clamp_min(1.0);
+    let d2 = (sky_rgb - target).square().sum_dim(1).reshape([rays]);
+    let has_sky = count.reshape([rays]).greater_elem(0.0).float();
+    let gate = (d2.div_scalar(-colour * colour).exp() * has_sky * unlabelled).detach();
+    (gate * s_hat_sky.neg().add_scalar(1.0)).sum() / rays.max(1) as f32
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -129,6 +153,59 @@ mod tests {
             1e-3,
             1e-2,
         );
+    }
+
+    /// L_sky against density by finite differences (the gate is a constant), and its value by
+    /// hand: ray 0 has one sky sample, ray 1 two, ray 2 none (gate 0).
+    #[test]
+    fn sky_prior_gradient_wrt_density_and_value() {
+        let rgb: Vec<f32> = coefficients(R * S * 3, 21)
+            .iter()
+            .map(|v| 0.5 + 0.4 * v)
+            .collect();
+        let target = [0.5f32, 0.6, 0.7, 0.2, 0.4, 0.9, 0.1, 0.1, 0.1];
+        let sky: Vec<f32> = FIXED.chunks(C).map(|row| row[C - 1]).collect();
+        let prior = |sig: Tensor<2>| {
+            let d = sig.device();
+            let w = render_weights(sig, t2(&DELTA, [R, S], &d));
+            let s_hat = render_semantics(&w, t3(&FIXED, [R, S, C], &d), C - 1);
+            sky_prior(
+                s_hat.narrow(1, C - 1, 1).reshape([R]),
+                t3(&rgb, [R, S, 3], &d),
+                t3(&sky, [R, S, 1], &d),
+                t2(&target, [R, 3], &d),
+                t1(&[1.0, 1.0, 1.0], &d),
+                0.5,
+            )
+        };
+        check("sky_prior/sigma", &SIGMA, [R, S], prior, 1e-2, 2e-2);
+
+        // By hand: S_hat(sky) = weights of the sky samples + remainder.
+        let d = Backend::REFERENCE.device();
+        let got = scalar(prior(t2(&SIGMA, [R, S], &d)));
+        let mut want = 0.0;
+        for r in 0..R {
+            let (mut log_t, mut s_sky, mut c_sky, mut n) = (0f32, 0f32, [0f32; 3], 0f32);
+            for i in 0..S {
+                let k = r * S + i;
+                let w = log_t.exp() * (1.0 - (-SIGMA[k] * DELTA[k]).exp());
+                log_t -= SIGMA[k] * DELTA[k];
+                s_sky += w * sky[k];
+                if sky[k] == 1.0 {
+                    n += 1.0;
+                    (0..3).for_each(|ch| c_sky[ch] += rgb[k * 3 + ch]);
+                }
+            }
+            s_sky += log_t.exp();
+            if n > 0.0 {
+                let d2: f32 = (0..3)
+                    .map(|ch| (c_sky[ch] / n - target[r * 3 + ch]).powi(2))
+                    .sum();
+                want += (-d2 / 0.25).exp() * (1.0 - s_sky) / R as f32;
+            }
+        }
+        assert!(sky.iter().filter(|&&m| m == 1.0).count() == 3);
+        assert!((got - want).abs() < 1e-5, "L_sky {got} vs by hand {want}");
     }
 
     #[test]

@@ -31,6 +31,7 @@ struct BatchTensors {
     unique: Tensor<2>,
     label_one_hot: Tensor<2>,
     labelled: Tensor<1>,
+    unlabelled: Tensor<1>,
     learned_mask: Tensor<1>,
     depth: Tensor<1>,
     depth_valid: Tensor<1>,
@@ -75,6 +76,7 @@ impl BatchTensors {
             ),
             unique: t2(s.unique_class_mask(), [r, n]),
             label_one_hot: t2(one_hot, [r, c]),
+            unlabelled: t1(labelled.iter().map(|l| 1.0 - l).collect()),
             labelled: t1(labelled),
             learned_mask: t1(learned),
             depth: t1(depth),
@@ -96,7 +98,7 @@ fn losses(
     let (r, n, c) = (s.rays, s.samples, s.classes);
     let bt = BatchTensors::new(batch, config.ray_mask, &device);
     let mut heads = vec![FieldHead::Density];
-    if terms.contains(&LossTerm::Rgb) {
+    if terms.contains(&LossTerm::Rgb) || terms.contains(&LossTerm::SkyPrior) {
         heads.push(FieldHead::Rgb);
     }
     if terms.contains(&LossTerm::Learned2d) || terms.contains(&LossTerm::Point3d) {
@@ -142,6 +144,16 @@ fn losses(
                     render_depth(&w, bt.t_mid.clone()),
                     bt.depth.clone(),
                     bt.depth_valid.clone(),
+                ),
+                LossTerm::SkyPrior => loss::sky_prior(
+                    render_semantics(&w, bt.fixed.clone(), sky)
+                        .narrow(1, sky, 1)
+                        .reshape([r]),
+                    out.rgb.clone().expect("rgb head").reshape([r, n, 3]),
+                    bt.fixed.clone().narrow(2, sky, 1),
+                    bt.rgb.clone(),
+                    bt.unlabelled.clone(),
+                    config.sky_prior_colour,
                 ),
             };
             (term, value)

@@ -8,20 +8,23 @@
 use super::field::FusedField;
 use super::mlp::{self, add_column_sums, gemm, grow, View};
 use super::work::{RayState, Sums, Work};
-use crate::model::batch::{is_one_hot, RayBatch};
+use crate::model::batch::{is_one_hot, RayBatch, RaySamples, RayTargets};
 use crate::model::composite::softmax_into;
 use crate::model::config::{SkyColourInput, TrainConfig};
 use crate::model::field::Heads;
+use crate::model::loss::LossTerm;
 
 /// Loss weights and normalisers of one step (shared by all partitions).
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Scale {
-    pub(super) weights: [f32; 5],
+    pub(super) weights: [f32; LossTerm::ALL.len()],
     pub(super) fixed: f32,
     pub(super) learned: f32,
     pub(super) point: f32,
     pub(super) rgb: f32,
     pub(super) depth: f32,
+    /// Rays in the batch (L_sky's mean).
+    pub(super) rays: f32,
 }
 
 impl Work {
@@ -38,7 +41,7 @@ impl Work {
         heads: Heads,
         config: &TrainConfig,
         sky: usize,
-        weights: &[f32; 5],
+        weights: &[f32; LossTerm::ALL.len()],
     ) {
         let s = &batch.samples;
         let t = &batch.targets;
@@ -143,6 +146,9 @@ impl Work {
             }
             state.shat_label = shat;
             state.s_label = sl;
+            if label < 0 && weights[5] != 0.0 {
+                self.sky_prior_forward(s, t, r, r0, config, sky, remainder, &mut state);
+            }
             if label >= 0 {
                 self.sums.terms[0] += -((shat + config.label_eps).ln()) as f64;
                 if !config.ray_mask || t.ray_mask[r] != 0.0 {
@@ -159,6 +165,44 @@ impl Work {
             }
             self.rays[lr] = state;
         }
+    }
+
+    /// L_sky of unlabelled ray `r`: its gate (from the mean colour of its sky samples, which
+    /// the colour head has computed) into `state`, `g (1 - S_hat(sky))` into the sums.
+    #[allow(clippy::too_many_arguments)]
+    fn sky_prior_forward(
+        &mut self,
+        s: &RaySamples,
+        t: &RayTargets,
+        r: usize,
+        r0: usize,
+        config: &TrainConfig,
+        sky: usize,
+        remainder: f32,
+        state: &mut RayState,
+    ) {
+        let (ns, c) = (s.samples, s.classes);
+        let (mut sky_rgb, mut count, mut shat_sky) = ([0f32; 3], 0f32, remainder.max(0.0));
+        for i in 0..ns {
+            let li = (r - r0) * ns + i;
+            let m = s.fixed_semantics[(r * ns + i) * c + sky];
+            shat_sky += self.weight[li] * m;
+            if m != 0.0 {
+                count += m;
+                for ch in 0..3 {
+                    sky_rgb[ch] += m * self.rgb[li * 3 + ch];
+                }
+            }
+        }
+        if count == 0.0 {
+            return;
+        }
+        let d2: f32 = (0..3)
+            .map(|ch| (sky_rgb[ch] / count - t.rgb[r * 3 + ch]).powi(2))
+            .sum();
+        let tau = config.sky_prior_colour;
+        state.sky_gate = (-d2 / (tau * tau)).exp();
+        self.sums.terms[5] += (state.sky_gate * (1.0 - shat_sky)) as f64;
     }
 
     /// Backward pass of rays `r0..r1` into this partition's gradients: through rendering and
@@ -251,12 +295,18 @@ impl Work {
                 0.0
             };
             let c3 = w[2] / scale.point;
+            // L_sky: d/dw_i of -g S_hat(sky), S_hat(sky) = sum_i w_i fixed_i(sky) + remainder.
+            let c_sky = -w[5] * st.sky_gate / scale.rays;
+            let sky_live = if st.remainder_live { 1.0 } else { 0.0 };
             for i in 0..ns {
                 let li = lr * ns + i;
                 let gi = p0 + li;
                 let wi = self.weight[li];
                 let fixed = &s.fixed_semantics[gi * c..(gi + 1) * c];
                 let mut g_w = cd * s.t_mid[gi];
+                if c_sky != 0.0 {
+                    g_w += c_sky * (fixed[sky] - sky_live);
+                }
                 if label >= 0 {
                     let l = label as usize;
                     g_w += cf * (fixed[l] - sky_term);

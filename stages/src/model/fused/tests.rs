@@ -106,6 +106,7 @@ fn losses_and_gradients_match_burn_autodiff_per_term_and_together() {
             point_3d: 0.0,
             rgb: 0.0,
             depth: 0.0,
+            sky_prior: 0.0,
         };
         match term {
             LossTerm::Fixed2d => c.losses.fixed_2d = 1.0,
@@ -113,6 +114,7 @@ fn losses_and_gradients_match_burn_autodiff_per_term_and_together() {
             LossTerm::Point3d => c.losses.point_3d = 1.0,
             LossTerm::Rgb => c.losses.rgb = 1.0,
             LossTerm::Depth => c.losses.depth = 0.1,
+            LossTerm::SkyPrior => c.losses.sky_prior = 1.0,
         }
         configs.push((term.name().to_string(), c));
     }

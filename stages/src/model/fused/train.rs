@@ -83,14 +83,14 @@ impl FusedTrainer {
             Some(t) => vec![t],
             None => self.terms.clone(),
         };
-        let mut weights = [0f32; 5];
+        let mut weights = [0f32; LossTerm::ALL.len()];
         for (k, term) in LossTerm::ALL.into_iter().enumerate() {
             if terms.contains(&term) {
                 weights[k] = self.config.losses.get(term);
             }
         }
         let heads = Heads {
-            rgb: weights[3] != 0.0,
+            rgb: weights[3] != 0.0 || weights[5] != 0.0,
             semantics: weights[1] != 0.0 || weights[2] != 0.0,
         };
         let rays = s.rays;
@@ -111,7 +111,7 @@ impl FusedTrainer {
             });
         let mut sums = Sums::default();
         for w in &self.work[..parts] {
-            for k in 0..5 {
+            for k in 0..LossTerm::ALL.len() {
                 sums.terms[k] += w.sums.terms[k];
             }
             sums.points_3d += w.sums.points_3d;
@@ -131,6 +131,7 @@ impl FusedTrainer {
             point: (sums.points_3d as f32).max(1.0),
             rgb: (3 * rays).max(1) as f32,
             depth: valid.max(1) as f32,
+            rays: rays.max(1) as f32,
         };
         let norms = [
             scale.fixed,
@@ -138,6 +139,7 @@ impl FusedTrainer {
             scale.point,
             scale.rgb,
             scale.depth,
+            scale.rays,
         ];
         let values: Vec<(LossTerm, f32)> = terms
             .iter()

@@ -7,6 +7,7 @@ use super::mlp::{self, add_bias, gemm, grow, relu_in_place, View};
 use crate::model::config::SkyColourInput;
 use crate::model::encoding::{lookup_level, positional_encoding, unit_direction};
 use crate::model::field::Heads;
+use crate::model::loss::LossTerm;
 
 /// Per-ray results of the forward pass that the backward pass needs.
 #[derive(Debug, Clone, Copy, Default)]
@@ -17,12 +18,14 @@ pub(super) struct RayState {
     pub(super) depth: f32,
     /// 1 - opacity > 0: the sky remainder is live (its gradient flows).
     pub(super) remainder_live: bool,
+    /// The gate of L_sky (0: the term does not act on this ray).
+    pub(super) sky_gate: f32,
 }
 
 /// Unnormalised loss sums of a partition, and the L_3D point count.
 #[derive(Debug, Clone, Copy, Default)]
 pub(super) struct Sums {
-    pub(super) terms: [f64; 5],
+    pub(super) terms: [f64; LossTerm::ALL.len()],
     pub(super) points_3d: f64,
 }
 
