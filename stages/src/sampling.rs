@@ -127,15 +127,20 @@ pub struct SampleBatch {
 }
 
 impl SampleBatch {
-    /// Per sample: whether it lies in its ray's sky interval (the fixed field is one-hot sky,
-    /// the last class, there and only there).
+    /// Per sample: whether it lies in its ray's sky interval ([`in_sky_rows`]).
     pub fn in_sky(&self) -> Vec<bool> {
-        let c = self.classes;
-        self.fixed_semantic
-            .chunks_exact(c)
-            .map(|row| row[c - 1] == 1.0)
-            .collect()
+        in_sky_rows(&self.fixed_semantic, self.classes)
     }
+}
+
+/// Per row of fixed semantic distributions (`classes` values each, sky last): whether it is
+/// one-hot sky, which is where a sample lies in its ray's sky interval (no primitive reaches
+/// into the sky interval, and outside it no row has sky).
+pub fn in_sky_rows(fixed: &[f32], classes: usize) -> Vec<bool> {
+    fixed
+        .chunks_exact(classes)
+        .map(|row| row[classes - 1] == 1.0)
+        .collect()
 }
 
 /// Places the samples of one ray with intervals `iv`: writes `t` and `delta` (`per_ray`

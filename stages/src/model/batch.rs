@@ -53,14 +53,10 @@ pub struct RayBatch {
 }
 
 impl RaySamples {
-    /// Per sample: whether it lies in its ray's sky interval (its fixed field is one-hot sky,
-    /// the last class; no primitive reaches into the sky interval).
+    /// Per sample: whether it lies in its ray's sky interval
+    /// ([`crate::sampling::in_sky_rows`]).
     pub fn in_sky(&self) -> Vec<bool> {
-        let c = self.classes;
-        self.fixed_semantics
-            .chunks_exact(c)
-            .map(|row| row[c - 1] == 1.0)
-            .collect()
+        crate::sampling::in_sky_rows(&self.fixed_semantics, self.classes)
     }
 
     /// Checks lengths and values; errors name the field.
