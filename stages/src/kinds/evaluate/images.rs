@@ -1,7 +1,5 @@
 //! One image's maps in a per-image table, checked against its size.
 
-use std::collections::HashMap;
-
 use arrow::{
     datatypes::{Float32Type, UInt16Type, UInt32Type, UInt8Type},
     record_batch::RecordBatch,
@@ -17,27 +15,22 @@ pub(super) struct Image<'a> {
     pub(super) batch: &'a RecordBatch,
 }
 
-pub(super) fn index_images<'a>(
-    batch: &'a RecordBatch,
-    table: &str,
-) -> Result<HashMap<(u32, u8), Image<'a>>> {
-    let frames = tables::get_prim::<UInt32Type>(batch, table, "frame")?;
-    let cams = tables::get_prim::<UInt8Type>(batch, table, "camera")?;
+/// The image of a one-row batch of a per-image table (see `RowIndex`).
+pub(super) fn one_image<'a>(batch: &'a RecordBatch, table: &str) -> Result<Image<'a>> {
+    if batch.num_rows() != 1 {
+        return Err(StageError::Input(format!(
+            "table `{table}`: expected one image's row, got {}",
+            batch.num_rows()
+        )));
+    }
     let w = tables::get_prim::<UInt32Type>(batch, table, "width")?;
     let h = tables::get_prim::<UInt32Type>(batch, table, "height")?;
-    Ok((0..batch.num_rows())
-        .map(|r| {
-            (
-                (frames[r], cams[r]),
-                Image {
-                    width: w[r] as usize,
-                    height: h[r] as usize,
-                    row: r,
-                    batch,
-                },
-            )
-        })
-        .collect())
+    Ok(Image {
+        width: w[0] as usize,
+        height: h[0] as usize,
+        row: 0,
+        batch,
+    })
 }
 
 pub(super) fn map_u8<'a>(img: &Image<'a>, table: &str, col: &str) -> Result<&'a [u8]> {

@@ -35,7 +35,7 @@ mod params;
 mod sums;
 
 use depth_bins::{depth_bin_keys, BinKey};
-use images::{check_size, index_images, map_f32, map_u16, map_u8, Image};
+use images::{check_size, map_f32, map_u16, map_u8, one_image};
 pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json};
 pub use params::{EvaluateParams, PANOPTICAPI_SUFFIX, PQ_CONVENTIONS};
 use sums::{ClassRows, FrameMaps, Group, GtRows, MetricRows};
@@ -86,15 +86,15 @@ fn view<'a>(c: &CameraRow, labels: &'a [u8], depth: &'a [f32]) -> LabelledView<'
     }
 }
 
-/// The per-image tables evaluation reads, indexed by (frame, camera). The ground truth and
-/// LiDAR exist for the evaluation images only and are read whole; pseudo labels and label maps
-/// exist for every image and are read one evaluated image at a time.
+/// The per-image tables evaluation reads, indexed by (frame, camera), each read one evaluated
+/// image at a time: at full size the ground truth, LiDAR and exact depth of the evaluation
+/// images alone take gigabytes.
 struct Sources<'a> {
-    gt_sem: HashMap<(u32, u8), Image<'a>>,
-    gt_inst: HashMap<(u32, u8), Image<'a>>,
-    lidar: HashMap<(u32, u8), Image<'a>>,
+    gt_sem: RowIndex<'a>,
+    gt_inst: RowIndex<'a>,
+    lidar: RowIndex<'a>,
     /// The scene's exact depth (synthetic scenes; none from KITTI-360).
-    exact: HashMap<(u32, u8), Image<'a>>,
+    exact: RowIndex<'a>,
     pseudo: RowIndex<'a>,
     maps: RowIndex<'a>,
 }
@@ -118,26 +118,41 @@ impl<'a> RowIndex<'a> {
     fn get(&self, key: (u32, u8)) -> Result<Option<RecordBatch>> {
         self.rows.get(&key).map(|&r| self.table.row(r)).transpose()
     }
+
+    /// Like [`RowIndex::get`], an error naming the table when it has no such row.
+    fn need(&self, key: (u32, u8)) -> Result<RecordBatch> {
+        self.get(key)?.ok_or_else(|| {
+            StageError::Input(format!(
+                "no `{}` row for frame {} camera {}",
+                self.table.name(),
+                key.0,
+                key.1
+            ))
+        })
+    }
 }
 
 impl<'a> Sources<'a> {
     fn new(inputs: &Inputs<'a>) -> Result<Self> {
-        let index = |slot: &str, table: &str| index_images(inputs.table(slot, table)?, table);
+        let index = |slot: &str, table: &str| RowIndex::new(inputs.stored(slot, table)?);
         Ok(Self {
             gt_sem: index("scene", "gt_semantic")?,
             gt_inst: index("scene", "gt_instance")?,
             lidar: index("scene", "lidar_depth")?,
             exact: index("scene", "gt_depth")?,
-            pseudo: RowIndex::new(inputs.stored("scene", "pseudo_labels")?)?,
-            maps: RowIndex::new(inputs.stored("render", "label_maps")?)?,
+            pseudo: index("scene", "pseudo_labels")?,
+            maps: index("render", "label_maps")?,
         })
     }
 
-    fn lidar_depth(&self, key: (u32, u8)) -> Result<Option<&'a [f32]>> {
-        self.lidar
-            .get(&key)
-            .map(|l| map_f32(l, "lidar_depth", "depth"))
-            .transpose()
+    /// The LiDAR depth of image `key`, checked against the image's size.
+    fn lidar_depth(&self, key: (u32, u8)) -> Result<Option<Vec<f32>>> {
+        let Some(row) = self.lidar.get(key)? else {
+            return Ok(None);
+        };
+        Ok(Some(
+            map_f32(&one_image(&row, "lidar_depth")?, "lidar_depth", "depth")?.to_vec(),
+        ))
     }
 }
 
@@ -189,21 +204,15 @@ impl Evaluation {
         prims: &[Primitive],
         bvh: &Bvh,
     ) -> Result<()> {
-        let missing = |what: &str| {
-            StageError::Input(format!(
-                "no `{what}` row for frame {} camera {}",
-                c.frame, c.camera
-            ))
-        };
         let key = (c.frame, c.camera);
-        let g = src.gt_sem.get(&key).ok_or_else(|| missing("gt_semantic"))?;
-        let gi = src
-            .gt_inst
-            .get(&key)
-            .ok_or_else(|| missing("gt_instance"))?;
-        let m_row = src.maps.get(key)?.ok_or_else(|| missing("label_maps"))?;
-        let m_index = index_images(&m_row, "label_maps")?;
-        let m = &m_index[&key];
+        let g_row = src.gt_sem.need(key)?;
+        let g = &one_image(&g_row, "gt_semantic")?;
+        let gi_row = src.gt_inst.need(key)?;
+        let gi = &one_image(&gi_row, "gt_instance")?;
+        let m_row = src.maps.need(key)?;
+        let m = &one_image(&m_row, "label_maps")?;
+        let lidar = src.lidar_depth(key)?;
+        let exact_row = src.exact.get(key)?;
         if (g.width, g.height) != (c.cam.width as usize, c.cam.height as usize)
             || (m.width, m.height) != (g.width, g.height)
         {
@@ -213,13 +222,9 @@ impl Evaluation {
             )));
         }
         let ps_row = src.pseudo.get(key)?;
-        let ps_index = ps_row
+        let pseudo = ps_row
             .as_ref()
-            .map(|r| index_images(r, "pseudo_labels"))
-            .transpose()?;
-        let pseudo = ps_index
-            .as_ref()
-            .map(|i| map_u8(&i[&key], "pseudo_labels", "labels"))
+            .map(|r| map_u8(&one_image(r, "pseudo_labels")?, "pseudo_labels", "labels"))
             .transpose()?;
         let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
         let gsem = map_u8(g, "gt_semantic", "labels")?;
@@ -234,12 +239,11 @@ impl Evaluation {
             fp_sem,
             fp_inst,
             pseudo,
-            lidar: src.lidar_depth(key)?,
-            exact: src
-                .exact
-                .get(&key)
+            lidar: lidar.as_deref(),
+            exact: exact_row
+                .as_ref()
                 .map(|e| {
-                    let d = map_f32(e, "gt_depth", "depth")?;
+                    let d = map_f32(&one_image(e, "gt_depth")?, "gt_depth", "depth")?;
                     check_size(d.len(), g, "gt_depth", "depth")?;
                     Ok::<_, StageError>(d)
                 })
@@ -310,7 +314,7 @@ impl Evaluation {
                 let Some((ma, mb)) = self.label_pair(method, a, b) else {
                     continue;
                 };
-                let c = multiview_consistency(&view(a, ma, da), &view(b, mb, db), distance)?;
+                let c = multiview_consistency(&view(a, ma, &da), &view(b, mb, &db), distance)?;
                 self.all.add_mc(method, &c);
                 self.by_model
                     .get_mut(camera_model(a))
@@ -337,7 +341,7 @@ impl Evaluation {
                             .map(|(u, v, _)| (u, v))
                     };
                     let c = cross_view_consistency(
-                        &view(a, ma, da),
+                        &view(a, ma, &da),
                         mb,
                         size,
                         labels::UNLABELED,
