@@ -88,7 +88,7 @@ proptest! {
         let all = Tensor::<1>::ones([rays], &d);
         // The smallest eps allowed: the steepest the label term gets.
         let loss = label_nll(sem, Tensor::from_data(TensorData::new(one_hot, [rays, classes]), &d), all.clone(), PROB_EPS)
-            + depth_mse(depth, all.clone().mul_scalar(3.0), all.clone(), all);
+            + depth_mse(depth, all.clone().mul_scalar(3.0), all);
         let l = loss.clone().into_data().try_to_vec::<f32>().unwrap()[0];
         prop_assert!(l.is_finite(), "loss {l}");
         let g = values(sig.grad(&loss.backward()).unwrap());

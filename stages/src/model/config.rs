@@ -339,11 +339,6 @@ pub struct TrainConfig {
     pub sigma_threshold: f32,
     /// Colour distance (RGB in [0, 1]) at which the gate of `losses.sky_prior` falls to 1/e.
     pub sky_prior_colour: f32,
-    /// Distance along the ray (metres) beyond which L_depth's error turns relative: a ray whose
-    /// stereo depth `D*` lies beyond it weighs `(depth_relative_beyond_m / D*)^2`, so the far
-    /// depths of a longer-range stereo do not outweigh the near ones. 0 (default): the paper's
-    /// absolute squared error everywhere.
-    pub depth_relative_beyond_m: f32,
     /// Apply the ray mask u(r) to L_learned2D (false: every labelled ray counts; the ablation
     /// "without u(r)").
     pub ray_mask: bool,
@@ -455,7 +450,6 @@ impl Default for TrainConfig {
             losses: LossWeights::default(),
             sigma_threshold: 0.1,
             sky_prior_colour: 0.1,
-            depth_relative_beyond_m: 0.0,
             ray_mask: true,
             lr: 2e-2,
             lr_final_factor: 0.1,
@@ -493,17 +487,6 @@ fn check_jitter(prefix: &str, width: f32, labels: JitterLabels) -> Result<(), Mo
 }
 
 impl TrainConfig {
-    /// L_depth's weight of a ray whose stereo depth along the ray is `target` metres (see
-    /// `depth_relative_beyond_m`).
-    pub fn depth_weight(&self, target: f32) -> f32 {
-        let d0 = self.depth_relative_beyond_m;
-        if d0 > 0.0 && target > d0 {
-            (d0 / target) * (d0 / target)
-        } else {
-            1.0
-        }
-    }
-
     /// The jitter window (pixels) and labels of a batch drawn after `passes` passes over the
     /// training rays.
     pub fn jitter_at(&self, passes: f64) -> (f32, JitterLabels) {
@@ -578,9 +561,6 @@ impl TrainConfig {
         }
         if !(self.sky_prior_colour.is_finite() && self.sky_prior_colour > 0.0) {
             return Err(invalid("sky_prior_colour must be finite and > 0"));
-        }
-        if !(self.depth_relative_beyond_m.is_finite() && self.depth_relative_beyond_m >= 0.0) {
-            return Err(invalid("depth_relative_beyond_m must be finite and >= 0"));
         }
         if !(self.sigma_threshold.is_finite() && self.sigma_threshold >= 0.0) {
             return Err(invalid("sigma_threshold must be finite and >= 0"));
@@ -703,31 +683,5 @@ mod tests {
         assert_eq!(c.lr_at(0), 5e-4);
         assert!((c.lr_at(10) - 2.5e-4).abs() < 1e-12);
         assert!(c.lr_at(5) < 5e-4 && c.lr_at(5) > 2.5e-4);
-    }
-
-    /// Below the distance the error stays absolute; beyond it a ray's weight times its squared
-    /// error is the squared relative error times the distance squared: at 20 m with 10 m,
-    /// a 2 m error (10 %) costs what a 1 m error costs at 10 m.
-    #[test]
-    fn depth_weight_turns_the_error_relative_beyond_its_distance() {
-        let off = TrainConfig::default();
-        assert_eq!(off.depth_weight(1e6), 1.0);
-        let c = TrainConfig {
-            depth_relative_beyond_m: 10.0,
-            ..Default::default()
-        };
-        assert_eq!(c.depth_weight(3.0), 1.0);
-        assert_eq!(c.depth_weight(10.0), 1.0);
-        assert!((c.depth_weight(20.0) * 2.0f32.powi(2) - 1.0).abs() < 1e-6);
-        for bad in [-1.0, f32::NAN, f32::INFINITY] {
-            let e = TrainConfig {
-                depth_relative_beyond_m: bad,
-                ..Default::default()
-            }
-            .validate()
-            .unwrap_err()
-            .to_string();
-            assert!(e.contains("depth_relative_beyond_m"), "{e}");
-        }
     }
 }

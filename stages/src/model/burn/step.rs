@@ -35,14 +35,11 @@ struct BatchTensors {
     learned_mask: Tensor<1>,
     depth: Tensor<1>,
     depth_valid: Tensor<1>,
-    /// L_depth's weight per ray ([`TrainConfig::depth_weight`]; 0 without a depth).
-    depth_weight: Tensor<1>,
     rgb: Tensor<2>,
 }
 
 impl BatchTensors {
-    fn new(batch: &RayBatch, config: &TrainConfig, device: &Device) -> Self {
-        let use_ray_mask = config.ray_mask;
+    fn new(batch: &RayBatch, use_ray_mask: bool, device: &Device) -> Self {
         let s = &batch.samples;
         let t = &batch.targets;
         let (r, n, c) = (s.rays, s.samples, s.classes);
@@ -64,12 +61,6 @@ impl BatchTensors {
             .map(|(a, b)| if use_ray_mask { a * b } else { *a })
             .collect();
         let valid: Vec<f32> = t.depth_valid.iter().map(|&v| v as u8 as f32).collect();
-        let weight: Vec<f32> = t
-            .depth
-            .iter()
-            .zip(&t.depth_valid)
-            .map(|(&d, &v)| if v { config.depth_weight(d) } else { 0.0 })
-            .collect();
         let depth: Vec<f32> = t
             .depth
             .iter()
@@ -90,7 +81,6 @@ impl BatchTensors {
             learned_mask: t1(learned),
             depth: t1(depth),
             depth_valid: t1(valid),
-            depth_weight: t1(weight),
             rgb: t2(t.rgb.clone(), [r, 3]),
         }
     }
@@ -106,7 +96,7 @@ fn losses(
     let device = field.trunk.layers[0].weight.device();
     let s = &batch.samples;
     let (r, n, c) = (s.rays, s.samples, s.classes);
-    let bt = BatchTensors::new(batch, config, &device);
+    let bt = BatchTensors::new(batch, config.ray_mask, &device);
     let mut heads = vec![FieldHead::Density];
     if terms.contains(&LossTerm::Rgb) || terms.contains(&LossTerm::SkyPrior) {
         heads.push(FieldHead::Rgb);
@@ -154,7 +144,6 @@ fn losses(
                     render_depth(&w, bt.t_mid.clone()),
                     bt.depth.clone(),
                     bt.depth_valid.clone(),
-                    bt.depth_weight.clone(),
                 ),
                 LossTerm::SkyPrior => loss::sky_prior(
                     render_semantics(&w, bt.fixed.clone(), sky)

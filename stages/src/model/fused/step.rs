@@ -161,7 +161,7 @@ impl Work {
             }
             if t.depth_valid[r] {
                 let d = state.depth - t.depth[r];
-                self.sums.terms[4] += (config.depth_weight(t.depth[r]) * d * d) as f64;
+                self.sums.terms[4] += (d * d) as f64;
             }
             self.rays[lr] = state;
         }
@@ -290,7 +290,7 @@ impl Work {
                 }
             }
             let cd = if w[4] != 0.0 && t.depth_valid[r] {
-                w[4] * config.depth_weight(t.depth[r]) * 2.0 * (st.depth - t.depth[r]) / scale.depth
+                w[4] * 2.0 * (st.depth - t.depth[r]) / scale.depth
             } else {
                 0.0
             };
