@@ -562,3 +562,60 @@ impl TypedStage for Evaluate {
         Ok(files)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A stored-style per-image table of two images, the second with one value too few.
+    fn gt_semantic() -> Table {
+        let batch = tables::build(
+            "gt_semantic",
+            vec![
+                tables::prim::<UInt32Type>([3, 4]),
+                tables::prim::<UInt8Type>([0, 2]),
+                tables::prim::<UInt32Type>([2, 2]),
+                tables::prim::<UInt32Type>([1, 1]),
+                tables::list::<UInt8Type>([vec![7, 8], vec![9]]),
+            ],
+        )
+        .unwrap();
+        Table::memory("gt_semantic", batch)
+    }
+
+    #[test]
+    fn images_are_read_one_row_at_a_time_and_checked() {
+        let table = gt_semantic();
+        let index = RowIndex::new(&table).unwrap();
+        let row = index.need((3, 0)).unwrap();
+        assert_eq!(row.num_rows(), 1);
+        let img = one_image(&row, "gt_semantic").unwrap();
+        assert_eq!((img.width, img.height), (2, 1));
+        assert_eq!(map_u8(&img, "gt_semantic", "labels").unwrap(), &[7, 8]);
+
+        let e = index.need((3, 2)).unwrap_err().to_string();
+        assert!(
+            e.contains("no `gt_semantic` row for frame 3 camera 2"),
+            "{e}"
+        );
+        assert!(index.get((3, 2)).unwrap().is_none());
+
+        let short = index.need((4, 2)).unwrap();
+        let e = map_u8(
+            &one_image(&short, "gt_semantic").unwrap(),
+            "gt_semantic",
+            "labels",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("gt_semantic") && e.contains("labels") && e.contains("2x1"),
+            "{e}"
+        );
+        let e = one_image(&table.whole().unwrap().clone(), "gt_semantic")
+            .map(|_| ())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("one image's row, got 2"), "{e}");
+    }
+}
