@@ -8,7 +8,7 @@ use arrow::{
         Array, ArrayRef, AsArray, BinaryArray, BooleanArray, FixedSizeListArray, ListArray,
         PrimitiveArray, StringArray,
     },
-    buffer::OffsetBuffer,
+    buffer::{OffsetBuffer, ScalarBuffer},
     datatypes::{ArrowPrimitiveType, DataType},
     record_batch::RecordBatch,
 };
@@ -40,11 +40,17 @@ pub fn binary<B: AsRef<[u8]>>(values: impl IntoIterator<Item = B>) -> ArrayRef {
     Arc::new(BinaryArray::from_iter_values(values))
 }
 
-/// A `list<T>` column from one vector per row.
+/// A `list<T>` column from one vector per row. The values buffer is allocated once, at its
+/// size, and each row is freed as soon as it is copied in: a column of a scene's images then
+/// takes its size once, not twice or more.
 pub fn list<T: ArrowPrimitiveType>(rows: impl IntoIterator<Item = Vec<T::Native>>) -> ArrayRef {
     let rows: Vec<Vec<T::Native>> = rows.into_iter().collect();
     let offsets = OffsetBuffer::from_lengths(rows.iter().map(|r| r.len()));
-    let values = PrimitiveArray::<T>::from_iter_values(rows.into_iter().flatten());
+    let mut flat = Vec::with_capacity(rows.iter().map(Vec::len).sum());
+    for row in rows {
+        flat.extend_from_slice(&row);
+    }
+    let values = PrimitiveArray::<T>::new(ScalarBuffer::from(flat), None);
     Arc::new(ListArray::new(
         schema::list_item(T::DATA_TYPE),
         offsets,

@@ -199,7 +199,7 @@ mod tests {
             fisheye,
             ..Default::default()
         };
-        let scene = to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap();
+        let scene = to_tables(&sp, generate(&sp, &crate::NoProgress).unwrap()).unwrap();
         (sp, scene)
     }
 

@@ -39,7 +39,7 @@ impl TypedStage for SyntheticScene {
 
     fn run(&self, p: &SceneParams, _: &Inputs, progress: &dyn Progress) -> Result<Tables> {
         let g = generate(p, progress)?;
-        to_tables(p, &g)
+        to_tables(p, g)
     }
 
     fn export(&self, _: &SceneParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {

@@ -329,7 +329,7 @@ fn small_street() -> crate::Tables {
         scale: 0.05,
         ..SceneParams::default()
     };
-    to_tables(&sp, &generate(&sp, &crate::NoProgress).unwrap()).unwrap()
+    to_tables(&sp, generate(&sp, &crate::NoProgress).unwrap()).unwrap()
 }
 
 /// `scene` with the plan the `intersect` stage would store for it (default parameters), as

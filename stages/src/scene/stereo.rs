@@ -423,7 +423,7 @@ mod tests {
         let sp = crate::scene::synthetic::SceneParams::default();
         let t = crate::scene::synthetic::to_tables(
             &sp,
-            &crate::scene::synthetic::generate(&sp, &crate::NoProgress).unwrap(),
+            crate::scene::synthetic::generate(&sp, &crate::NoProgress).unwrap(),
         )
         .unwrap();
         let out = {

@@ -544,8 +544,9 @@ fn image_table(
     )
 }
 
-/// Turns a generated scene into the stage's tables.
-pub fn to_tables(p: &SceneParams, g: &Generated) -> Result<Tables> {
+/// Turns a generated scene into the stage's tables, freeing each image map as soon as its
+/// column holds it (at full size the maps alone take gigabytes).
+pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
     let key = |r: &CameraRow| (r.frame, r.camera, r.cam.width, r.cam.height);
     let all: Vec<_> = g.cameras.iter().map(key).collect();
     let left: Vec<_> = g
@@ -560,6 +561,7 @@ pub fn to_tables(p: &SceneParams, g: &Generated) -> Result<Tables> {
         .filter(|r| r.camera == 0 && r.eval)
         .map(key)
         .collect();
+    let labelled: Vec<_> = g.labelled.iter().map(|&i| key(&g.cameras[i])).collect();
     let mut t = Tables::new();
     t.insert(
         "scene_info".into(),
@@ -569,70 +571,60 @@ pub fn to_tables(p: &SceneParams, g: &Generated) -> Result<Tables> {
                 tables::strings([p.name.as_str()]),
                 tables::strings([p.sequence.as_str()]),
                 tables::fixed_list::<Float64Type>(3, p.origin.to_vec()),
-                tables::list::<UInt8Type>([classes_present(g)]),
+                tables::list::<UInt8Type>([classes_present(&g)]),
                 tables::prim::<Float64Type>([p.baseline_m]),
             ],
         )?,
     );
     t.insert("cameras".into(), cameras_to_table(&g.cameras)?);
     t.insert("primitives".into(), primitives_to_table(&g.layout.bounds)?);
-    t.insert(
-        "images".into(),
-        image_table(
-            "images",
-            &all,
-            tables::binary(g.images.iter().map(|i| &i.rgb)),
-        )?,
-    );
-    t.insert(
-        "gt_semantic".into(),
-        image_table(
-            "gt_semantic",
-            &all,
-            tables::list::<UInt8Type>(g.images.iter().map(|i| i.labels.clone())),
-        )?,
-    );
-    t.insert(
-        "gt_instance".into(),
-        image_table(
-            "gt_instance",
-            &all,
-            tables::list::<UInt16Type>(g.images.iter().map(|i| i.instances.clone())),
-        )?,
-    );
-    t.insert(
-        "gt_depth".into(),
-        image_table(
-            "gt_depth",
-            &all,
-            tables::list::<Float32Type>(g.images.iter().map(|i| i.depth.clone())),
-        )?,
-    );
+    let Generated {
+        mut images,
+        pseudo,
+        stereo,
+        lidar,
+        ..
+    } = g;
+    let rgb = tables::binary(images.iter().map(|i| &i.rgb));
+    for i in &mut images {
+        i.rgb = Vec::new();
+        i.overexposed = Vec::new();
+    }
+    t.insert("images".into(), image_table("images", &all, rgb)?);
+    let mut column = |name: &str, values| -> Result<()> {
+        t.insert(name.into(), image_table(name, &all, values)?);
+        Ok(())
+    };
+    column(
+        "gt_semantic",
+        tables::list::<UInt8Type>(images.iter_mut().map(|i| std::mem::take(&mut i.labels))),
+    )?;
+    column(
+        "gt_instance",
+        tables::list::<UInt16Type>(images.iter_mut().map(|i| std::mem::take(&mut i.instances))),
+    )?;
+    column(
+        "gt_depth",
+        tables::list::<Float32Type>(images.into_iter().map(|i| i.depth)),
+    )?;
     t.insert(
         "pseudo_labels".into(),
         image_table(
             "pseudo_labels",
-            &g.labelled
-                .iter()
-                .map(|&i| key(&g.cameras[i]))
-                .collect::<Vec<_>>(),
-            tables::list::<UInt8Type>(g.pseudo.clone()),
+            &labelled,
+            tables::list::<UInt8Type>(pseudo),
         )?,
     );
     t.insert(
         "stereo_depth".into(),
-        image_table(
-            "stereo_depth",
-            &left,
-            tables::list::<Float32Type>(g.stereo.clone()),
-        )?,
+        image_table("stereo_depth", &left, tables::list::<Float32Type>(stereo))?,
     );
     t.insert(
         "lidar_depth".into(),
         image_table(
             "lidar_depth",
             &eval,
-            tables::list::<Float32Type>(g.lidar.iter().map(|l| l.1.clone())),
+            tables::list::<Float32Type>(lidar.into_iter().map(|l| l.1)),
         )?,
     );
     Ok(t)

@@ -515,7 +515,7 @@ fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
     let sp = SceneParams::default();
     let synth = crate::scene::synthetic::to_tables(
         &sp,
-        &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
+        crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
     )
     .unwrap();
     let root = temp(&format!("roundtrip-{tag}"));
@@ -817,7 +817,7 @@ fn the_exported_bboxes_keep_every_object_apart_for_the_devkit() {
     let sp = SceneParams::default();
     let synth = crate::scene::synthetic::to_tables(
         &sp,
-        &crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
+        crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
     )
     .unwrap();
     let root = temp("devkit-ids");
