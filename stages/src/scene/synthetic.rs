@@ -585,48 +585,45 @@ pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
         lidar,
         ..
     } = g;
-    let rgb = tables::binary(images.iter().map(|i| &i.rgb));
+    let mut put = |name: &str, keys: &[(u32, u8, u32, u32)], values| -> Result<()> {
+        t.insert(name.into(), image_table(name, keys, values)?);
+        Ok(())
+    };
+    put(
+        "images",
+        &all,
+        tables::binary(images.iter().map(|i| &i.rgb)),
+    )?;
     for i in &mut images {
         i.rgb = Vec::new();
         i.overexposed = Vec::new();
     }
-    t.insert("images".into(), image_table("images", &all, rgb)?);
-    let mut column = |name: &str, values| -> Result<()> {
-        t.insert(name.into(), image_table(name, &all, values)?);
-        Ok(())
-    };
-    column(
+    put(
         "gt_semantic",
+        &all,
         tables::list::<UInt8Type>(images.iter_mut().map(|i| std::mem::take(&mut i.labels))),
     )?;
-    column(
+    put(
         "gt_instance",
+        &all,
         tables::list::<UInt16Type>(images.iter_mut().map(|i| std::mem::take(&mut i.instances))),
     )?;
-    column(
+    put(
         "gt_depth",
+        &all,
         tables::list::<Float32Type>(images.into_iter().map(|i| i.depth)),
     )?;
-    t.insert(
-        "pseudo_labels".into(),
-        image_table(
-            "pseudo_labels",
-            &labelled,
-            tables::list::<UInt8Type>(pseudo),
-        )?,
-    );
-    t.insert(
-        "stereo_depth".into(),
-        image_table("stereo_depth", &left, tables::list::<Float32Type>(stereo))?,
-    );
-    t.insert(
-        "lidar_depth".into(),
-        image_table(
-            "lidar_depth",
-            &eval,
-            tables::list::<Float32Type>(lidar.into_iter().map(|l| l.1)),
-        )?,
-    );
+    put(
+        "pseudo_labels",
+        &labelled,
+        tables::list::<UInt8Type>(pseudo),
+    )?;
+    put("stereo_depth", &left, tables::list::<Float32Type>(stereo))?;
+    put(
+        "lidar_depth",
+        &eval,
+        tables::list::<Float32Type>(lidar.into_iter().map(|l| l.1)),
+    )?;
     Ok(t)
 }
 
