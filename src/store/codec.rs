@@ -2,7 +2,7 @@
 //! tables give equal bytes (and equal digests), straight to the entry's file through a hashing
 //! writer (a table is never encoded into memory first), in row groups a reader can take one at
 //! a time: a streamed table one per batch the stage wrote (one image), a table written whole in
-//! groups of at most [`ROW_GROUP_BYTES`].
+//! groups of at most [`ROW_GROUP_BYTES`], or one row each where rows are images.
 
 use std::{
     fs::File,
@@ -40,6 +40,10 @@ pub enum CodecError {
 /// reader of a few rows (one image) decodes little more than those rows.
 pub const ROW_GROUP_BYTES: usize = 64 << 20;
 
+/// Rows of at least this many bytes on average (images, label maps, depth maps) get a row group
+/// each: a reader of one image then decodes that image alone.
+pub const ROW_ALONE_BYTES: usize = 256 << 10;
+
 /// Rows per row group of Parquet's own default (kept for tables of small rows).
 const MAX_GROUP_ROWS: usize = 1 << 20;
 
@@ -63,8 +67,9 @@ fn properties(schema: &SchemaRef) -> Result<WriterProperties, CodecError> {
     Ok(props.build())
 }
 
-/// Rows per row group for `batch`: about [`ROW_GROUP_BYTES`] of values each. Computed from the
-/// values, not from buffer capacities, so equal tables are split equally.
+/// Rows per row group for `batch`: about [`ROW_GROUP_BYTES`] of values each, or one where rows
+/// are large ([`ROW_ALONE_BYTES`]). Computed from the values, not from buffer capacities, so
+/// equal tables are split equally.
 fn rows_per_group(batch: &RecordBatch) -> usize {
     let bytes: usize = batch
         .columns()
@@ -72,6 +77,9 @@ fn rows_per_group(batch: &RecordBatch) -> usize {
         .map(|c| c.to_data().get_slice_memory_size().unwrap_or(0))
         .sum();
     let n = batch.num_rows().max(1);
+    if bytes / n >= ROW_ALONE_BYTES {
+        return 1;
+    }
     if bytes <= ROW_GROUP_BYTES {
         return n;
     }
@@ -98,7 +106,7 @@ impl<W: Write + Send> TableEncoder<W> {
         Ok(())
     }
 
-    /// Appends `batch` in row groups of about [`ROW_GROUP_BYTES`].
+    /// Appends `batch` in row groups of [`rows_per_group`] rows.
     pub fn write_whole(&mut self, batch: &RecordBatch) -> Result<(), CodecError> {
         let step = rows_per_group(batch);
         if step >= batch.num_rows() {
@@ -293,9 +301,9 @@ mod tests {
     fn large_tables_are_split_into_row_groups_and_read_back_in_parts() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("t.parquet");
-        // 40 rows of 4 MiB (and a little): row groups of 15 rows.
+        // 40 rows of 4 MiB (and a little): images, one row group each.
         let b = images(40, 4 << 20);
-        assert_eq!(rows_per_group(&b), 15);
+        assert_eq!(rows_per_group(&b), 1);
         let mut enc = TableEncoder::new(HashingFile::create(&path).unwrap(), b.schema()).unwrap();
         enc.write_whole(&b).unwrap();
         let (size, hash) = enc.finish().unwrap().finish().unwrap();
@@ -309,7 +317,7 @@ mod tests {
         );
         let t = StoredTable::open(&path).unwrap();
         assert_eq!(t.num_rows(), 40);
-        assert_eq!(t.starts, vec![0, 15, 30, 40]);
+        assert_eq!(t.starts, (0..=40).collect::<Vec<_>>());
         // Rows across a group boundary, columns in the order asked.
         let part = t.read(14..18, Some(&["rgb", "frame"])).unwrap();
         assert_eq!(part.num_rows(), 4);
@@ -322,6 +330,16 @@ mod tests {
         assert_eq!(frames.values().to_vec(), vec![14, 15, 16, 17]);
         assert_eq!(t.read(0..40, None).unwrap(), b);
         assert_eq!(t.read(40..40, None).unwrap().num_rows(), 0);
+    }
+
+    #[test]
+    fn tables_of_smaller_rows_are_split_by_bytes() {
+        // 400 rows of 200 KiB: 81_923_204 bytes of values (frames, offsets, bytes), so groups
+        // of 64 MiB * 400 / 81_923_204 = 327.7 rows.
+        let b = images(400, 200 << 10);
+        assert_eq!(rows_per_group(&b), 327);
+        let b = images(400, ROW_ALONE_BYTES);
+        assert_eq!(rows_per_group(&b), 1);
     }
 
     #[test]
