@@ -15,7 +15,7 @@
 mod images;
 mod rays;
 
-pub use images::{train_rays, ImageRays, JitteredRays, Targets, TrainImage};
+pub use images::{train_rays, ImageRays, JitteredRays, SparseDepth, Targets, TrainImage};
 use rayon::prelude::*;
 pub use rays::{
     pixel_ray, Intervals, PlannedImage, PrimInfo, RaySet, RayTargets, Rays, SceneRay, StoredRays,

@@ -1,7 +1,7 @@
 //! Every ray of a scene's images as training draws them ([`ImageRays`]): the images the `rays`
-//! input planned (in its row order), each with its camera, the plan's hit counts and its
-//! targets (RGB, pseudo labels, stereo depth) borrowed from the `scene` (and `depth`) tables;
-//! each ray's intervals are traced again when it is drawn.
+//! input planned (in its row order), each with its camera, the plan's hit counts, its targets
+//! (RGB, pseudo labels) borrowed from the `scene` tables and its stereo depth (from `depth` or
+//! `scene`) kept where it has a value; each ray's intervals are traced again when it is drawn.
 
 use std::collections::HashMap;
 
@@ -13,6 +13,7 @@ use crate::geometry::{self, Primitive};
 use crate::intervals::{may_see_sky, IntersectParams, RayPlan};
 use crate::rng::{mix, SplitMix64};
 use crate::stage::{Inputs, Result, StageError};
+use crate::stream::Table;
 use crate::{labels, tables};
 
 /// One image of the scene as training sees it: its camera and per-pixel targets.
@@ -25,15 +26,48 @@ pub struct TrainImage<'a> {
     /// Per pixel: primitive intervals the `intersect` stage kept (0 = pure sky).
     pub hits: Vec<u8>,
     pub targets: Targets<'a>,
+    /// Stereo depth, where the image has one.
+    pub depth: Option<SparseDepth>,
 }
 
-/// The per-pixel targets of one image: RGB (bytes), and pseudo labels and stereo depth where the
-/// image has them; borrowed from the input tables.
+/// The per-pixel targets of one image: RGB (bytes), and pseudo labels where the image has them;
+/// borrowed from the input tables.
 #[derive(Clone, Copy)]
 pub struct Targets<'a> {
     pub rgb: &'a [u8],
     pub labels: Option<&'a [u8]>,
-    pub depth: Option<&'a [f32]>,
+}
+
+/// The stereo depth of one image at the pixels that have one: most have none (motion stereo
+/// gives about a sixth of a fisheye image's pixels a depth), and the dense maps of every image
+/// of a full-size scene with fisheye cameras took 1.3 GB.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseDepth {
+    /// Pixel indices, ascending.
+    pixels: Vec<u32>,
+    depth: Vec<f32>,
+}
+
+impl SparseDepth {
+    /// The finite, positive values of a dense map (0 or NaN: no depth).
+    pub fn from_dense(dense: &[f32]) -> Self {
+        let (pixels, depth) = dense
+            .iter()
+            .enumerate()
+            .filter(|(_, &d)| d.is_finite() && d > 0.0)
+            .map(|(p, &d)| (p as u32, d))
+            .unzip();
+        Self { pixels, depth }
+    }
+
+    /// The depth at pixel `p`; 0 where there is none.
+    pub fn get(&self, p: usize) -> f32 {
+        let Ok(p) = u32::try_from(p) else { return 0.0 };
+        match self.pixels.binary_search(&p) {
+            Ok(i) => self.depth[i],
+            Err(_) => 0.0,
+        }
+    }
 }
 
 /// Every ray of a scene's images, its intervals traced again whenever it is drawn: holding them
@@ -209,13 +243,10 @@ impl ImageRays<'_> {
                 rgb: [0, 1, 2].map(|c| t.rgb[p * 3 + c] as f32 / 255.0),
                 label,
                 u_mask: self.prims.ray_mask(label, &intervals),
-                depth: t.depth.filter(|_| keeps_depth).map_or(0.0, |d| {
-                    if d[p].is_finite() && d[p] > 0.0 {
-                        d[p]
-                    } else {
-                        0.0
-                    }
-                }),
+                depth: match &im.depth {
+                    Some(d) if keeps_depth => d.get(p),
+                    _ => 0.0,
+                },
             },
             intervals,
         })
@@ -239,7 +270,8 @@ impl<'a> ImageRows<'a> {
     }
 }
 
-/// Columns of `ray_intervals` training reads (not the intervals: it traces them again).
+/// Columns of `ray_intervals` training reads whole (the per-pixel `hits` it reads an image at a
+/// time; the intervals not at all: it traces them again).
 const PLAN_COLUMNS: &[&str] = &[
     "frame",
     "camera",
@@ -248,7 +280,6 @@ const PLAN_COLUMNS: &[&str] = &[
     "k",
     "far",
     "sky_interval",
-    "hits",
 ];
 
 /// The rays of every image of the `rays` input's plan, with their targets from `scene` (and a
@@ -259,21 +290,22 @@ pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
     let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
     let images = ImageRows::new(inputs.table("scene", "images")?, "images")?;
     let pseudo = ImageRows::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
-    let depth_table = match inputs.optional_table("depth", "stereo_depth")? {
+    // The stereo depth and the plan's hits an image at a time (one row group each): whole, they
+    // were the largest tables training held.
+    let stereo = match inputs.optional_stored("depth", "stereo_depth")? {
         Some(t) => Some(t),
-        None => inputs.optional_table("scene", "stereo_depth")?,
+        None => inputs.optional_stored("scene", "stereo_depth")?,
     };
-    let stereo = depth_table
-        .map(|t| ImageRows::new(t, "stereo_depth"))
-        .transpose()?;
-    let plan = inputs
-        .stored("rays", "ray_intervals")?
-        .columns(PLAN_COLUMNS)?;
+    let stereo_index: HashMap<(u32, u8), usize> = match stereo {
+        Some(t) => tables::frame_camera_index(&t.columns(&["frame", "camera"])?, "stereo_depth")?,
+        None => HashMap::new(),
+    };
+    let plan_table = inputs.stored("rays", "ray_intervals")?;
+    let plan = plan_table.columns(PLAN_COLUMNS)?;
     let params = plan_params(&plan)?;
     const T: &str = "ray_intervals";
     let frames = tables::get_prim::<UInt32Type>(&plan, T, "frame")?;
     let cameras = tables::get_prim::<UInt8Type>(&plan, T, "camera")?;
-    let hits = tables::get_list::<UInt8Type>(&plan, T, "hits")?;
     let mut out = Vec::with_capacity(plan.num_rows());
     let mut first_ray = 0u64;
     for r in 0..plan.num_rows() {
@@ -289,7 +321,9 @@ pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
             })?;
         let (w, h) = (cam.cam.width, cam.cam.height);
         let n = (w * h) as usize;
-        if hits.row(r).len() != n {
+        let hits_row = plan_table.rows(r..r + 1, Some(&["hits"]))?;
+        let hits = tables::get_list::<UInt8Type>(&hits_row, T, "hits")?.row(0);
+        if hits.len() != n {
             return Err(StageError::Input(format!(
                 "ray_intervals row {r}: per-pixel arrays do not have {w}x{h} entries"
             )));
@@ -306,8 +340,12 @@ pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
             camera: key.1,
             cam: cam.cam.clone(),
             first_ray: first,
-            hits: hits.row(r).to_vec(),
-            targets: image_targets(key, w, h, &images, &pseudo, stereo.as_ref())?,
+            hits: hits.to_vec(),
+            targets: image_targets(key, w, h, &images, &pseudo)?,
+            depth: match (stereo, stereo_index.get(&key)) {
+                (Some(t), Some(&i)) => Some(image_depth(key, w, h, t, i)?),
+                _ => None,
+            },
         });
         first_ray += n as u64;
     }
@@ -340,15 +378,14 @@ fn plan_params(plan: &RecordBatch) -> Result<IntersectParams> {
     })
 }
 
-/// Per-pixel RGB, pseudo labels and stereo depth of image `key` (`w` x `h`): RGB must exist,
-/// the others may be absent; each must have one value per pixel.
+/// Per-pixel RGB and pseudo labels of image `key` (`w` x `h`): RGB must exist, pseudo labels
+/// may be absent; each must have one value per pixel.
 fn image_targets<'a>(
     key: (u32, u8),
     w: u32,
     h: u32,
     images: &ImageRows<'a>,
     pseudo: &ImageRows<'a>,
-    stereo: Option<&ImageRows<'a>>,
 ) -> Result<Targets<'a>> {
     let n = (w * h) as usize;
     let rgb = images
@@ -377,32 +414,32 @@ fn image_targets<'a>(
             tables::get_list::<UInt8Type>(pseudo.batch, pseudo.table, "labels").map(|l| l.row(i))
         })
         .transpose()?;
-    let depth_row = match stereo {
-        Some(s) => s
-            .index
-            .get(&key)
-            .map(|&i| tables::get_list::<Float32Type>(s.batch, s.table, "depth").map(|l| l.row(i)))
-            .transpose()?,
-        None => None,
-    };
-    for (what, len) in [
-        ("pseudo_labels", labels_row.map(<[u8]>::len)),
-        ("stereo_depth", depth_row.map(<[f32]>::len)),
-    ] {
-        if let Some(len) = len {
-            if len != n {
-                return Err(StageError::Input(format!(
-                    "{what}: frame {} camera {} has {len} values, expected {w}x{h}",
-                    key.0, key.1
-                )));
-            }
-        }
+    if let Some(len) = labels_row.map(<[u8]>::len) {
+        check_len("pseudo_labels", key, w, h, len)?;
     }
     Ok(Targets {
         rgb,
         labels: labels_row,
-        depth: depth_row,
     })
+}
+
+/// The stereo depth of image `key` (`w` x `h`), row `row` of `table`.
+fn image_depth(key: (u32, u8), w: u32, h: u32, table: &Table, row: usize) -> Result<SparseDepth> {
+    let batch = table.rows(row..row + 1, Some(&["depth"]))?;
+    let dense = tables::get_list::<Float32Type>(&batch, "stereo_depth", "depth")?.row(0);
+    check_len("stereo_depth", key, w, h, dense.len())?;
+    Ok(SparseDepth::from_dense(dense))
+}
+
+/// An error unless a per-pixel row of table `what` has `w * h` values.
+fn check_len(what: &str, key: (u32, u8), w: u32, h: u32, len: usize) -> Result<()> {
+    if len != (w * h) as usize {
+        return Err(StageError::Input(format!(
+            "{what}: frame {} camera {} has {len} values, expected {w}x{h}",
+            key.0, key.1
+        )));
+    }
+    Ok(())
 }
 
 /// The rays of an [`ImageRays`] each cast through a random point of a `width`-pixel window

@@ -693,3 +693,29 @@ fn bilinear_jitter_labels_draw_neighbours_with_their_bilinear_weight() {
         "{relabelled} rays took another class from a neighbour"
     );
 }
+
+/// The sparse stereo depth gives back every finite, positive value of the dense map it came
+/// from, and 0 at every other pixel (0, NaN, infinite, negative, past the end).
+#[test]
+fn sparse_depth_gives_back_the_dense_map() {
+    let mut rng = crate::rng::SplitMix64::new(7);
+    let dense: Vec<f32> = (0..5000)
+        .map(|_| match rng.next_u64() % 6 {
+            0 | 1 => 0.0,
+            2 => f32::NAN,
+            3 => f32::INFINITY,
+            4 => -1.5,
+            _ => 0.5 + (rng.next_u64() % 4000) as f32 / 100.0,
+        })
+        .collect();
+    let sparse = SparseDepth::from_dense(&dense);
+    let mut kept = 0;
+    for (p, &d) in dense.iter().enumerate() {
+        let want = if d.is_finite() && d > 0.0 { d } else { 0.0 };
+        kept += (want > 0.0) as usize;
+        assert_eq!(sparse.get(p), want, "pixel {p}: dense {d}");
+    }
+    assert!(kept > 500, "only {kept} values: no test");
+    assert_eq!(sparse.get(dense.len()), 0.0);
+    assert_eq!(sparse.get(usize::MAX >> 1), 0.0);
+}
