@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use crate::scene::{
     kitti360_export, preview,
-    synthetic::{generate, to_tables, SceneParams},
+    synthetic::{write_tables, SceneParams},
 };
 use crate::stage::{InputSlot, Inputs, Progress, Result, TableSet, Tables, TypedStage};
 
@@ -37,9 +37,8 @@ impl TypedStage for SyntheticScene {
         p.validate()
     }
 
-    fn run(&self, p: &SceneParams, _: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let g = generate(p, progress)?;
-        to_tables(p, g)
+    fn run(&self, p: &SceneParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+        write_tables(p, inputs, progress)
     }
 
     fn export(&self, _: &SceneParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {

@@ -6,7 +6,9 @@
 //! image exactly ([`tracer`]), derives noisy pseudo labels ([`noise`]), weak stereo depth and
 //! LiDAR depth ([`depth`]), and writes the tables of `data_schema/`: `scene_info`, `cameras`,
 //! `primitives`, `images`, `pseudo_labels`, `stereo_depth`, `lidar_depth`, `gt_semantic`,
-//! `gt_instance`, `gt_depth`. `export` writes the KITTI-360 layout ([`kitti360_export`]) and
+//! `gt_instance`, `gt_depth`, an image at a time as each is rendered ([`write_tables`]: the
+//! full-size street with fisheye cameras takes 0.2 GB where holding its maps took 4.2 GB).
+//! `export` writes the KITTI-360 layout ([`kitti360_export`]) and
 //! colour previews ([`preview`]).
 //!
 //! Frames: the street's layout is `street_length_m` long with a frame every
@@ -17,7 +19,9 @@
 //! Cost (2 cores, dev profile with optimised dependencies): the default scene takes 0.35-0.9 s;
 //! full KITTI-360 size (`scale` 1, 1408x376) about 0.7 s per image.
 
+use arrow::array::ArrayRef;
 use arrow::datatypes::{Float32Type, Float64Type, UInt16Type, UInt32Type, UInt8Type};
+use arrow::record_batch::RecordBatch;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -26,6 +30,8 @@ use crate::geometry::{
     Mei,
 };
 use crate::labels::{self, PAPER_CLASSES, ROAD, SKY, TERRAIN};
+use crate::stage::Inputs;
+use crate::stream::TableWriter;
 use crate::{tables, Progress, Result, StageError, Tables};
 
 use super::layout::{Layout, LayoutParams, RIG_Y};
@@ -386,121 +392,347 @@ pub struct Generated {
     pub lidar: Vec<(u32, Vec<f32>)>,
 }
 
-/// Generates the scene (the body of `run`, also used by tests).
-pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
-    let layout = layout::build(&p.layout_params()?);
-    let bvh = Bvh::build(&layout.parts);
-    let cameras: Vec<CameraRow> = p
-        .frame_numbers()
-        .flat_map(|f| {
-            let eval = p.is_eval(f);
-            let fisheye = p.fisheye.then(|| fisheye_rig(p, f));
-            rig(p, f)
-                .into_iter()
-                .chain(fisheye.into_iter().flatten())
-                .enumerate()
-                .map(move |(c, cam)| CameraRow {
-                    frame: f,
-                    camera: c as u8,
-                    eval,
-                    cam,
-                })
+/// The street, its BVH and every camera row of the window, before anything is rendered.
+struct Street {
+    layout: Layout,
+    bvh: Bvh,
+    cameras: Vec<CameraRow>,
+}
+
+impl Street {
+    fn build(p: &SceneParams) -> Result<Self> {
+        let layout = layout::build(&p.layout_params()?);
+        let bvh = Bvh::build(&layout.parts);
+        let cameras: Vec<CameraRow> = p
+            .frame_numbers()
+            .flat_map(|f| {
+                let eval = p.is_eval(f);
+                let fisheye = p.fisheye.then(|| fisheye_rig(p, f));
+                rig(p, f)
+                    .into_iter()
+                    .chain(fisheye.into_iter().flatten())
+                    .enumerate()
+                    .map(move |(c, cam)| CameraRow {
+                        frame: f,
+                        camera: c as u8,
+                        eval,
+                        cam,
+                    })
+            })
+            .collect();
+        Ok(Self {
+            layout,
+            bvh,
+            cameras,
         })
-        .collect();
-    let total = cameras.len() as u64;
+    }
+}
+
+/// What one camera row gives: its exact rendering and, where the row has them, pseudo labels
+/// (left camera; fisheye cameras when asked), stereo depth (left) and LiDAR depth (left, eval
+/// frames). Each from seeds of its own row, so any order of rows gives the same maps.
+struct RowMaps {
+    render: tracer::Rendered,
+    pseudo: Option<Vec<u8>>,
+    stereo: Option<Vec<f32>>,
+    lidar: Option<Vec<f32>>,
+}
+
+fn has_pseudo_labels(p: &SceneParams, row: &CameraRow) -> bool {
+    row.camera == 0 || (row.camera >= 2 && p.fisheye_pseudo_labels)
+}
+
+fn row_maps(p: &SceneParams, s: &Street, row: &CameraRow) -> RowMaps {
+    let look = tracer::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
+    let img = tracer::render(&s.layout, &s.bvh, &row.cam, &look, p.supersample);
+    let pseudo = has_pseudo_labels(p, row).then(|| {
+        let inp = noise::NoiseInput {
+            width: row.cam.width as usize,
+            height: row.cam.height as usize,
+            labels: &img.labels,
+            instances: &img.instances,
+            overexposed: &img.overexposed,
+        };
+        // The left camera's noise as before; each fisheye camera its own.
+        let seed = p.seed ^ ((row.camera as u64) << 40);
+        let mut pl = noise::pseudo_labels(&inp, p.noise, seed, row.frame);
+        noise::far_region_errors(
+            &inp,
+            &img.depth,
+            &mut pl,
+            p.noise_far_regions,
+            p.noise,
+            seed,
+            row.frame,
+        );
+        for (l, &gt) in pl.iter_mut().zip(&img.labels) {
+            if gt == labels::UNLABELED {
+                *l = labels::UNLABELED; // outside a fisheye's lens
+            }
+        }
+        pl
+    });
+    let stereo = (row.camera == 0).then(|| {
+        let (w, h) = (row.cam.width as usize, row.cam.height as usize);
+        let model = depth::StereoModel {
+            max_depth: p.stereo_max_depth_m,
+            fb: row.cam.fx * p.baseline_m,
+            width: w,
+            height: h,
+        };
+        depth::stereo_depth(&model, &img.depth, &img.overexposed, p.seed, row.frame)
+    });
+    let lidar = (row.camera == 0 && row.eval).then(|| {
+        let cam = &row.cam;
+        let r = cam.cam_to_world.matrix3;
+        let origin = cam
+            .cam_to_world
+            .transform_point3(DVec3::new(0.3, -0.2, -0.3));
+        let basis = [r * DVec3::Z, r * -DVec3::X, r * -DVec3::Y];
+        let cast = |o: DVec3, d: DVec3| {
+            let ray = crate::geometry::Ray { origin: o, dir: d };
+            s.bvh
+                .first_hit(&s.layout.parts, &ray, 0.0, 1.0e4)
+                .map(|h| h.t_in)
+        };
+        depth::lidar_depth(
+            &depth::LidarModel::default(),
+            origin,
+            basis,
+            cam.width,
+            cam.height,
+            cast,
+            |q| cam.project(q),
+            p.seed,
+            row.frame,
+        )
+    });
+    RowMaps {
+        render: img,
+        pseudo,
+        stereo,
+        lidar,
+    }
+}
+
+/// Generates the whole scene in memory (tests; the stage streams it, [`write_tables`]).
+pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
+    let s = Street::build(p)?;
+    let total = s.cameras.len() as u64;
     let done = std::sync::atomic::AtomicU64::new(0);
-    let images: Vec<tracer::Rendered> = cameras
+    let maps: Vec<RowMaps> = s
+        .cameras
         .par_iter()
         .map(|row| {
-            let look =
-                tracer::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
-            let out = tracer::render(&layout, &bvh, &row.cam, &look, p.supersample);
+            let m = row_maps(p, &s, row);
             let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress.update(d, total, "rendering");
-            out
+            m
         })
         .collect();
-    let left: Vec<usize> = (0..cameras.len())
-        .filter(|&i| cameras[i].camera == 0)
-        .collect();
-    let labelled: Vec<usize> = (0..cameras.len())
-        .filter(|&i| cameras[i].camera == 0 || (cameras[i].camera >= 2 && p.fisheye_pseudo_labels))
-        .collect();
-    let pseudo: Vec<Vec<u8>> = labelled
-        .par_iter()
-        .map(|&i| {
-            let (row, img) = (&cameras[i], &images[i]);
-            let inp = noise::NoiseInput {
-                width: row.cam.width as usize,
-                height: row.cam.height as usize,
-                labels: &img.labels,
-                instances: &img.instances,
-                overexposed: &img.overexposed,
-            };
-            // The left camera's noise as before; each fisheye camera its own.
-            let seed = p.seed ^ ((row.camera as u64) << 40);
-            let mut pl = noise::pseudo_labels(&inp, p.noise, seed, row.frame);
-            noise::far_region_errors(
-                &inp,
-                &img.depth,
-                &mut pl,
-                p.noise_far_regions,
-                p.noise,
-                seed,
-                row.frame,
-            );
-            for (l, &gt) in pl.iter_mut().zip(&img.labels) {
-                if gt == labels::UNLABELED {
-                    *l = labels::UNLABELED; // outside a fisheye's lens
+    let mut g = Generated {
+        layout: s.layout,
+        cameras: s.cameras,
+        images: Vec::with_capacity(maps.len()),
+        labelled: Vec::new(),
+        pseudo: Vec::new(),
+        stereo: Vec::new(),
+        lidar: Vec::new(),
+    };
+    for (i, m) in maps.into_iter().enumerate() {
+        g.images.push(m.render);
+        if let Some(pl) = m.pseudo {
+            g.labelled.push(i);
+            g.pseudo.push(pl);
+        }
+        g.stereo.extend(m.stereo);
+        g.lidar.extend(m.lidar.map(|l| (g.cameras[i].frame, l)));
+    }
+    Ok(g)
+}
+
+/// The per-image tables, written a camera row at a time (see [`crate::stream::TableWriter`]).
+struct ImageTables {
+    images: TableWriter,
+    gt_semantic: TableWriter,
+    gt_instance: TableWriter,
+    gt_depth: TableWriter,
+    pseudo_labels: TableWriter,
+    stereo_depth: TableWriter,
+    lidar_depth: TableWriter,
+    /// Classes seen in any GT image so far (for `scene_info`).
+    seen: [bool; 256],
+}
+
+impl ImageTables {
+    fn open(inputs: &Inputs) -> Result<Self> {
+        Ok(Self {
+            images: inputs.writer("images")?,
+            gt_semantic: inputs.writer("gt_semantic")?,
+            gt_instance: inputs.writer("gt_instance")?,
+            gt_depth: inputs.writer("gt_depth")?,
+            pseudo_labels: inputs.writer("pseudo_labels")?,
+            stereo_depth: inputs.writer("stereo_depth")?,
+            lidar_depth: inputs.writer("lidar_depth")?,
+            seen: [false; 256],
+        })
+    }
+
+    /// Writes `row`'s maps to every table that has a row for it; each map is freed once its
+    /// table holds it.
+    fn push(&mut self, row: &CameraRow, m: RowMaps) -> Result<()> {
+        let RowMaps {
+            render,
+            pseudo,
+            stereo,
+            lidar,
+        } = m;
+        for &l in &render.labels {
+            self.seen[l as usize] = true;
+        }
+        let one = |name: &str, values| image_row(name, row, values);
+        self.images
+            .write(one("images", tables::binary([&render.rgb]))?)?;
+        self.gt_semantic.write(one(
+            "gt_semantic",
+            tables::list::<UInt8Type>([render.labels]),
+        )?)?;
+        self.gt_instance.write(one(
+            "gt_instance",
+            tables::list::<UInt16Type>([render.instances]),
+        )?)?;
+        self.gt_depth.write(one(
+            "gt_depth",
+            tables::list::<Float32Type>([render.depth]),
+        )?)?;
+        if let Some(pl) = pseudo {
+            self.pseudo_labels
+                .write(one("pseudo_labels", tables::list::<UInt8Type>([pl]))?)?;
+        }
+        if let Some(d) = stereo {
+            self.stereo_depth
+                .write(one("stereo_depth", tables::list::<Float32Type>([d]))?)?;
+        }
+        if let Some(d) = lidar {
+            self.lidar_depth
+                .write(one("lidar_depth", tables::list::<Float32Type>([d]))?)?;
+        }
+        Ok(())
+    }
+
+    /// Ends every table and adds `scene_info`, `cameras` and `primitives` (small, whole).
+    fn finish(
+        self,
+        p: &SceneParams,
+        cameras: &[CameraRow],
+        layout: &Layout,
+        t: &mut Tables,
+    ) -> Result<()> {
+        // The classes present: in any GT image or any primitive, plus sky.
+        let mut seen = self.seen;
+        seen[SKY as usize] = true;
+        for b in &layout.bounds {
+            seen[b.label as usize] = true;
+        }
+        let classes: Vec<u8> = (0..=255u8).filter(|&c| seen[c as usize]).collect();
+        t.insert(
+            "scene_info".into(),
+            tables::build(
+                "scene_info",
+                vec![
+                    tables::strings([p.name.as_str()]),
+                    tables::strings([p.sequence.as_str()]),
+                    tables::fixed_list::<Float64Type>(3, p.origin.to_vec()),
+                    tables::list::<UInt8Type>([classes]),
+                    tables::prim::<Float64Type>([p.baseline_m]),
+                ],
+            )?,
+        );
+        t.insert("cameras".into(), cameras_to_table(cameras)?);
+        t.insert("primitives".into(), primitives_to_table(&layout.bounds)?);
+        for w in [
+            self.images,
+            self.gt_semantic,
+            self.gt_instance,
+            self.gt_depth,
+            self.pseudo_labels,
+            self.stereo_depth,
+            self.lidar_depth,
+        ] {
+            w.finish_into(t)?;
+        }
+        Ok(())
+    }
+}
+
+/// One row of a per-image table: `row`'s (frame, camera, width, height) and a value column.
+fn image_row(name: &str, row: &CameraRow, values: ArrayRef) -> Result<RecordBatch> {
+    tables::build(
+        name,
+        vec![
+            tables::prim::<UInt32Type>([row.frame]),
+            tables::prim::<UInt8Type>([row.camera]),
+            tables::prim::<UInt32Type>([row.cam.width]),
+            tables::prim::<UInt32Type>([row.cam.height]),
+            values,
+        ],
+    )
+}
+
+/// Generates the scene and writes its tables through `inputs`' writers as each image is done
+/// (the body of `run`): images are rendered in parallel in camera-row order and written in that
+/// order, so memory holds a few images' maps, not the scene's (at full size with fisheye
+/// cameras the maps take gigabytes). The tables equal [`to_tables`] of [`generate`].
+pub fn write_tables(p: &SceneParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
+    let s = Street::build(p)?;
+    let total = s.cameras.len() as u64;
+    let mut out = ImageTables::open(inputs)?;
+    // Rows are handed to the workers in order (`par_bridge`), so the writer below waits on few
+    // of them; the bounded channel stops the workers when the writer falls behind.
+    let (tx, rx) = std::sync::mpsc::sync_channel::<(usize, RowMaps)>(2);
+    let street = &s;
+    let written = std::thread::scope(|scope| -> Result<ImageTables> {
+        let writer = scope.spawn(move || -> Result<ImageTables> {
+            let mut waiting = std::collections::BTreeMap::new();
+            let mut next = 0;
+            for (i, m) in rx {
+                waiting.insert(i, m);
+                while let Some(m) = waiting.remove(&next) {
+                    out.push(&street.cameras[next], m)?;
+                    next += 1;
+                    progress.update(next as u64, total, "rendering");
                 }
             }
-            pl
-        })
-        .collect();
-    let stereo: Vec<Vec<f32>> = left
-        .par_iter()
-        .map(|&i| {
-            let (row, img) = (&cameras[i], &images[i]);
-            let (w, h) = (row.cam.width as usize, row.cam.height as usize);
-            let model = depth::StereoModel {
-                max_depth: p.stereo_max_depth_m,
-                fb: row.cam.fx * p.baseline_m,
-                width: w,
-                height: h,
-            };
-            depth::stereo_depth(&model, &img.depth, &img.overexposed, p.seed, row.frame)
-        })
-        .collect();
-    let lidar: Vec<(u32, Vec<f32>)> = left
-        .par_iter()
-        .filter(|&&i| cameras[i].eval)
-        .map(|&i| {
-            let cam = &cameras[i].cam;
-            let r = cam.cam_to_world.matrix3;
-            let origin = cam
-                .cam_to_world
-                .transform_point3(DVec3::new(0.3, -0.2, -0.3));
-            let basis = [r * DVec3::Z, r * -DVec3::X, r * -DVec3::Y];
-            let cast = |o: DVec3, d: DVec3| {
-                let ray = crate::geometry::Ray { origin: o, dir: d };
-                bvh.first_hit(&layout.parts, &ray, 0.0, 1.0e4)
-                    .map(|h| h.t_in)
-            };
-            let d = depth::lidar_depth(
-                &depth::LidarModel::default(),
-                origin,
-                basis,
-                cam.width,
-                cam.height,
-                cast,
-                |q| cam.project(q),
-                p.seed,
-                cameras[i].frame,
-            );
-            (cameras[i].frame, d)
-        })
-        .collect();
-    Ok(Generated {
+            if next != street.cameras.len() {
+                return Err(StageError::Failed(format!(
+                    "the synthetic scene wrote {next} of {} images",
+                    street.cameras.len()
+                )));
+            }
+            Ok(out)
+        });
+        // A send fails only when the writer stopped on an error, which `join` gives back.
+        let _ = s
+            .cameras
+            .iter()
+            .enumerate()
+            .par_bridge()
+            .try_for_each(|(i, row)| tx.send((i, row_maps(p, street, row))).map_err(|_| ()));
+        drop(tx);
+        writer
+            .join()
+            .map_err(|_| StageError::Failed("the synthetic scene's writer panicked".into()))?
+    })?;
+    let mut t = Tables::new();
+    written.finish(p, &s.cameras, &s.layout, &mut t)?;
+    Ok(t)
+}
+
+/// The tables of a scene generated in memory (tests); equal to what [`write_tables`] writes.
+pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
+    let no_slots = Inputs::new(Default::default());
+    let mut out = ImageTables::open(&no_slots)?;
+    let Generated {
         layout,
         cameras,
         images,
@@ -508,122 +740,28 @@ pub fn generate(p: &SceneParams, progress: &dyn Progress) -> Result<Generated> {
         pseudo,
         stereo,
         lidar,
-    })
-}
-
-/// The classes present in the scene: in any GT image or any primitive, plus sky.
-fn classes_present(g: &Generated) -> Vec<u8> {
-    let mut seen = [false; 256];
-    seen[SKY as usize] = true;
-    for img in &g.images {
-        for &l in &img.labels {
-            seen[l as usize] = true;
-        }
-    }
-    for b in &g.layout.bounds {
-        seen[b.label as usize] = true;
-    }
-    (0..=255u8).filter(|&c| seen[c as usize]).collect()
-}
-
-/// Builds one per-image table from (frame, camera, width, height) keys and a value column.
-fn image_table(
-    name: &str,
-    keys: &[(u32, u8, u32, u32)],
-    values: arrow::array::ArrayRef,
-) -> Result<arrow::record_batch::RecordBatch> {
-    tables::build(
-        name,
-        vec![
-            tables::prim::<UInt32Type>(keys.iter().map(|k| k.0)),
-            tables::prim::<UInt8Type>(keys.iter().map(|k| k.1)),
-            tables::prim::<UInt32Type>(keys.iter().map(|k| k.2)),
-            tables::prim::<UInt32Type>(keys.iter().map(|k| k.3)),
-            values,
-        ],
-    )
-}
-
-/// Turns a generated scene into the stage's tables, freeing each image map as soon as its
-/// column holds it (at full size the maps alone take gigabytes).
-pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
-    let key = |r: &CameraRow| (r.frame, r.camera, r.cam.width, r.cam.height);
-    let all: Vec<_> = g.cameras.iter().map(key).collect();
-    let left: Vec<_> = g
-        .cameras
-        .iter()
-        .filter(|r| r.camera == 0)
-        .map(key)
-        .collect();
-    let eval: Vec<_> = g
-        .cameras
-        .iter()
-        .filter(|r| r.camera == 0 && r.eval)
-        .map(key)
-        .collect();
-    let labelled: Vec<_> = g.labelled.iter().map(|&i| key(&g.cameras[i])).collect();
-    let mut t = Tables::new();
-    t.insert(
-        "scene_info".into(),
-        tables::build(
-            "scene_info",
-            vec![
-                tables::strings([p.name.as_str()]),
-                tables::strings([p.sequence.as_str()]),
-                tables::fixed_list::<Float64Type>(3, p.origin.to_vec()),
-                tables::list::<UInt8Type>([classes_present(&g)]),
-                tables::prim::<Float64Type>([p.baseline_m]),
-            ],
-        )?,
-    );
-    t.insert("cameras".into(), cameras_to_table(&g.cameras)?);
-    t.insert("primitives".into(), primitives_to_table(&g.layout.bounds)?);
-    let Generated {
-        mut images,
-        pseudo,
-        stereo,
-        lidar,
-        ..
     } = g;
-    let mut put = |name: &str, keys: &[(u32, u8, u32, u32)], values| -> Result<()> {
-        t.insert(name.into(), image_table(name, keys, values)?);
-        Ok(())
-    };
-    put(
-        "images",
-        &all,
-        tables::binary(images.iter().map(|i| &i.rgb)),
-    )?;
-    for i in &mut images {
-        i.rgb = Vec::new();
-        i.overexposed = Vec::new();
+    let (mut pseudo, mut stereo, mut lidar) =
+        (pseudo.into_iter(), stereo.into_iter(), lidar.into_iter());
+    for (i, (row, render)) in cameras.iter().zip(images).enumerate() {
+        let m = RowMaps {
+            render,
+            pseudo: if labelled.contains(&i) {
+                pseudo.next()
+            } else {
+                None
+            },
+            stereo: if row.camera == 0 { stereo.next() } else { None },
+            lidar: if row.camera == 0 && row.eval {
+                lidar.next().map(|l| l.1)
+            } else {
+                None
+            },
+        };
+        out.push(row, m)?;
     }
-    put(
-        "gt_semantic",
-        &all,
-        tables::list::<UInt8Type>(images.iter_mut().map(|i| std::mem::take(&mut i.labels))),
-    )?;
-    put(
-        "gt_instance",
-        &all,
-        tables::list::<UInt16Type>(images.iter_mut().map(|i| std::mem::take(&mut i.instances))),
-    )?;
-    put(
-        "gt_depth",
-        &all,
-        tables::list::<Float32Type>(images.into_iter().map(|i| i.depth)),
-    )?;
-    put(
-        "pseudo_labels",
-        &labelled,
-        tables::list::<UInt8Type>(pseudo),
-    )?;
-    put("stereo_depth", &left, tables::list::<Float32Type>(stereo))?;
-    put(
-        "lidar_depth",
-        &eval,
-        tables::list::<Float32Type>(lidar.into_iter().map(|l| l.1)),
-    )?;
+    let mut t = Tables::new();
+    out.finish(p, &cameras, &layout, &mut t)?;
     Ok(t)
 }
 

@@ -276,6 +276,41 @@ fn same_params_give_identical_tables_whatever_the_thread_count() {
     assert_ne!(a["images"], c["images"], "the seed changes the scene");
 }
 
+/// The stage writes its tables an image at a time as the images are rendered, in parallel;
+/// they must equal the tables of the scene generated whole, on any number of threads, with
+/// every kind of row (fisheye images with pseudo labels, eval frames with LiDAR).
+#[test]
+fn streamed_tables_equal_the_scene_generated_whole() {
+    let p = SceneParams {
+        frames: 3,
+        first_frame: 40,
+        eval_every: 2,
+        fisheye: true,
+        fisheye_pseudo_labels: true,
+        ..SceneParams::default()
+    };
+    let whole = to_tables(&p, generate(&p, &NoProgress).unwrap()).unwrap();
+    let no_slots = crate::stage::Inputs::new(Default::default());
+    let streamed = write_tables(&p, &no_slots, &NoProgress).unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let one_thread = pool.install(|| write_tables(&p, &no_slots, &NoProgress).unwrap());
+    assert_eq!(
+        whole.keys().collect::<Vec<_>>(),
+        streamed.keys().collect::<Vec<_>>()
+    );
+    for (k, t) in &whole {
+        assert_eq!(t, &streamed[k], "table {k} differs");
+        assert_eq!(t, &one_thread[k], "table {k} differs on one thread");
+    }
+    assert_eq!(whole["images"].num_rows(), 12);
+    assert_eq!(whole["pseudo_labels"].num_rows(), 9);
+    assert_eq!(whole["stereo_depth"].num_rows(), 3);
+    assert_eq!(whole["lidar_depth"].num_rows(), 2);
+}
+
 #[test]
 fn bad_params_are_rejected_with_clear_errors() {
     let kind = SyntheticScene;
