@@ -442,17 +442,22 @@ fn has_pseudo_labels(p: &SceneParams, row: &CameraRow) -> bool {
     row.camera == 0 || (row.camera >= 2 && p.fisheye_pseudo_labels)
 }
 
+/// What the pseudo-label noise model needs of `row`'s rendering `img`.
+fn noise_input<'a>(row: &CameraRow, img: &'a tracer::Rendered) -> noise::NoiseInput<'a> {
+    noise::NoiseInput {
+        width: row.cam.width as usize,
+        height: row.cam.height as usize,
+        labels: &img.labels,
+        instances: &img.instances,
+        overexposed: &img.overexposed,
+    }
+}
+
 fn row_maps(p: &SceneParams, s: &Street, row: &CameraRow) -> RowMaps {
     let look = tracer::Look::of(p.seed, row.frame, row.camera, row.cam.width, row.cam.height);
     let img = tracer::render(&s.layout, &s.bvh, &row.cam, &look, p.supersample);
     let pseudo = has_pseudo_labels(p, row).then(|| {
-        let inp = noise::NoiseInput {
-            width: row.cam.width as usize,
-            height: row.cam.height as usize,
-            labels: &img.labels,
-            instances: &img.instances,
-            overexposed: &img.overexposed,
-        };
+        let inp = noise_input(row, &img);
         // The left camera's noise as before; each fisheye camera its own.
         let seed = p.seed ^ ((row.camera as u64) << 40);
         let mut pl = noise::pseudo_labels(&inp, p.noise, seed, row.frame);

@@ -52,14 +52,8 @@ fn pseudo_miou(p: &SceneParams, g: &Generated, level: f64) -> f64 {
     let preds: Vec<Vec<u8>> = left
         .iter()
         .map(|&i| {
-            let (row, img) = (&g.cameras[i], &g.images[i]);
-            let inp = noise::NoiseInput {
-                width: row.cam.width as usize,
-                height: row.cam.height as usize,
-                labels: &img.labels,
-                instances: &img.instances,
-                overexposed: &img.overexposed,
-            };
+            let row = &g.cameras[i];
+            let inp = noise_input(row, &g.images[i]);
             noise::pseudo_labels(&inp, level, p.seed, row.frame)
         })
         .collect();
