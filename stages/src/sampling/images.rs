@@ -17,7 +17,7 @@ use crate::stream::Table;
 use crate::{labels, tables};
 
 /// One image of the scene as training sees it: its camera and per-pixel targets.
-pub struct TrainImage<'a> {
+pub struct TrainImage {
     pub frame: u32,
     pub camera: u8,
     pub cam: geometry::Camera,
@@ -25,17 +25,19 @@ pub struct TrainImage<'a> {
     pub first_ray: u32,
     /// Per pixel: primitive intervals the `intersect` stage kept (0 = pure sky).
     pub hits: Vec<u8>,
-    pub targets: Targets<'a>,
+    pub targets: Targets,
     /// Stereo depth, where the image has one.
     pub depth: Option<SparseDepth>,
 }
 
 /// The per-pixel targets of one image: RGB (bytes), and pseudo labels where the image has them;
-/// borrowed from the input tables.
-#[derive(Clone, Copy)]
-pub struct Targets<'a> {
-    pub rgb: &'a [u8],
-    pub labels: Option<&'a [u8]>,
+/// read from the input tables an image at a time (the scene's `images` read whole took twice
+/// its size while its row groups were gathered into one batch: 1.9 GB at full size with
+/// fisheye cameras).
+#[derive(Debug, Clone)]
+pub struct Targets {
+    pub rgb: Vec<u8>,
+    pub labels: Option<Vec<u8>>,
 }
 
 /// The stereo depth of one image at the pixels that have one: most have none (motion stereo
@@ -51,12 +53,15 @@ pub struct SparseDepth {
 impl SparseDepth {
     /// The finite, positive values of a dense map (0 or NaN: no depth).
     pub fn from_dense(dense: &[f32]) -> Self {
-        let (pixels, depth) = dense
+        let (mut pixels, mut depth): (Vec<u32>, Vec<f32>) = dense
             .iter()
             .enumerate()
             .filter(|(_, &d)| d.is_finite() && d > 0.0)
             .map(|(p, &d)| (p as u32, d))
             .unzip();
+        // Grown by doubling: up to half of each would be spare capacity, kept for the whole run.
+        pixels.shrink_to_fit();
+        depth.shrink_to_fit();
         Self { pixels, depth }
     }
 
@@ -72,10 +77,10 @@ impl SparseDepth {
 
 /// Every ray of a scene's images, its intervals traced again whenever it is drawn: holding them
 /// for every ray of a full-size scene (68 M rays) took gigabytes, tracing a batch of 2048 rays
-/// takes about a millisecond. Targets are read from the input tables in place.
-pub struct ImageRays<'a> {
+/// takes about a millisecond.
+pub struct ImageRays {
     pub prims: PrimInfo,
-    pub images: Vec<TrainImage<'a>>,
+    pub images: Vec<TrainImage>,
     primitives: Vec<Primitive>,
     bvh: geometry::Bvh,
     params: IntersectParams,
@@ -84,10 +89,10 @@ pub struct ImageRays<'a> {
     depth_prims: Option<Vec<bool>>,
 }
 
-impl<'a> ImageRays<'a> {
+impl ImageRays {
     pub fn new(
         primitives: Vec<Primitive>,
-        images: Vec<TrainImage<'a>>,
+        images: Vec<TrainImage>,
         params: IntersectParams,
     ) -> Result<Self> {
         let mut rays = 0u64;
@@ -128,7 +133,7 @@ impl<'a> ImageRays<'a> {
     }
 
     /// The image of ray `r` and the pixel in it.
-    pub fn locate(&self, r: u32) -> (&TrainImage<'a>, usize) {
+    pub fn locate(&self, r: u32) -> (&TrainImage, usize) {
         let i = self.images.partition_point(|im| im.first_ray <= r) - 1;
         let im = &self.images[i];
         (im, (r - im.first_ray) as usize)
@@ -141,7 +146,7 @@ impl<'a> ImageRays<'a> {
     }
 }
 
-impl Rays for ImageRays<'_> {
+impl Rays for ImageRays {
     fn prims(&self) -> &PrimInfo {
         &self.prims
     }
@@ -153,7 +158,7 @@ impl Rays for ImageRays<'_> {
     }
 }
 
-impl ImageRays<'_> {
+impl ImageRays {
     /// Ray `r` through the point `offset` (in pixels, each in [0, 1)) of its pixel; `None`: the
     /// pixel's centre, the ray the plan was traced with, whose interval count is checked
     /// against the plan. An offset ray that leaves the lens, or crosses no primitive where the
@@ -215,6 +220,7 @@ impl ImageRays<'_> {
         let t = &im.targets;
         let mut label = t
             .labels
+            .as_ref()
             .map_or(NONE, |l| self.prims.label_class(l[label_pixel]));
         // A pseudo label of sky on a ray below the horizon is the 2D network's mistake: no
         // setting of the fields can honour it (the ray has no sky interval), and chasing it
@@ -253,20 +259,26 @@ impl ImageRays<'_> {
     }
 }
 
-/// A per-image input table with its (frame, camera) -> row index.
+/// A per-image input table, stored, with its (frame, camera) -> row index; rows are read one
+/// at a time.
 struct ImageRows<'a> {
     index: HashMap<(u32, u8), usize>,
-    batch: &'a RecordBatch,
-    table: &'static str,
+    table: &'a Table,
+    name: &'static str,
 }
 
 impl<'a> ImageRows<'a> {
-    fn new(batch: &'a RecordBatch, table: &'static str) -> Result<Self> {
+    fn new(table: &'a Table, name: &'static str) -> Result<Self> {
         Ok(Self {
-            index: tables::frame_camera_index(batch, table)?,
-            batch,
+            index: tables::frame_camera_index(&table.columns(&["frame", "camera"])?, name)?,
             table,
+            name,
         })
+    }
+
+    /// Row `i`'s column `col`, alone.
+    fn row(&self, i: usize, col: &str) -> Result<RecordBatch> {
+        self.table.rows(i..i + 1, Some(&[col]))
     }
 }
 
@@ -285,13 +297,14 @@ const PLAN_COLUMNS: &[&str] = &[
 /// The rays of every image of the `rays` input's plan, with their targets from `scene` (and a
 /// connected `depth` stage, which takes precedence over the scene's own stereo depth). Images
 /// without pseudo labels (right camera) get none.
-pub fn train_rays<'a>(inputs: &Inputs<'a>) -> Result<ImageRays<'a>> {
+pub fn train_rays(inputs: &Inputs) -> Result<ImageRays> {
     let cams = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
-    let images = ImageRows::new(inputs.table("scene", "images")?, "images")?;
-    let pseudo = ImageRows::new(inputs.table("scene", "pseudo_labels")?, "pseudo_labels")?;
-    // The stereo depth and the plan's hits an image at a time (one row group each): whole, they
-    // were the largest tables training held.
+    // Every per-image table an image at a time (one row group each): whole, the stereo depth
+    // and the plan's hits were the largest tables training held, and the images took twice
+    // their size while being read.
+    let images = ImageRows::new(inputs.stored("scene", "images")?, "images")?;
+    let pseudo = ImageRows::new(inputs.stored("scene", "pseudo_labels")?, "pseudo_labels")?;
     let stereo = match inputs.optional_stored("depth", "stereo_depth")? {
         Some(t) => Some(t),
         None => inputs.optional_stored("scene", "stereo_depth")?,
@@ -380,25 +393,24 @@ fn plan_params(plan: &RecordBatch) -> Result<IntersectParams> {
 
 /// Per-pixel RGB and pseudo labels of image `key` (`w` x `h`): RGB must exist, pseudo labels
 /// may be absent; each must have one value per pixel.
-fn image_targets<'a>(
+fn image_targets(
     key: (u32, u8),
     w: u32,
     h: u32,
-    images: &ImageRows<'a>,
-    pseudo: &ImageRows<'a>,
-) -> Result<Targets<'a>> {
+    images: &ImageRows,
+    pseudo: &ImageRows,
+) -> Result<Targets> {
     let n = (w * h) as usize;
-    let rgb = images
-        .index
-        .get(&key)
-        .map(|&i| tables::get_binary(images.batch, images.table, "rgb").map(|b| b.value(i)))
-        .transpose()?
-        .ok_or_else(|| {
-            StageError::Input(format!(
-                "no `images` row for frame {} camera {}",
-                key.0, key.1
-            ))
-        })?;
+    let i = *images.index.get(&key).ok_or_else(|| {
+        StageError::Input(format!(
+            "no `images` row for frame {} camera {}",
+            key.0, key.1
+        ))
+    })?;
+    let row = images.row(i, "rgb")?;
+    let rgb = tables::get_binary(&row, images.name, "rgb")?
+        .value(0)
+        .to_vec();
     if rgb.len() != n * 3 {
         return Err(StageError::Input(format!(
             "images: frame {} camera {} has {} bytes, expected {w}x{h}x3",
@@ -407,20 +419,18 @@ fn image_targets<'a>(
             rgb.len()
         )));
     }
-    let labels_row = pseudo
-        .index
-        .get(&key)
-        .map(|&i| {
-            tables::get_list::<UInt8Type>(pseudo.batch, pseudo.table, "labels").map(|l| l.row(i))
-        })
-        .transpose()?;
-    if let Some(len) = labels_row.map(<[u8]>::len) {
-        check_len("pseudo_labels", key, w, h, len)?;
-    }
-    Ok(Targets {
-        rgb,
-        labels: labels_row,
-    })
+    let labels = match pseudo.index.get(&key) {
+        Some(&i) => {
+            let row = pseudo.row(i, "labels")?;
+            let labels = tables::get_list::<UInt8Type>(&row, pseudo.name, "labels")?
+                .row(0)
+                .to_vec();
+            check_len("pseudo_labels", key, w, h, labels.len())?;
+            Some(labels)
+        }
+        None => None,
+    };
+    Ok(Targets { rgb, labels })
 }
 
 /// The stereo depth of image `key` (`w` x `h`), row `row` of `table`.
@@ -447,8 +457,8 @@ fn check_len(what: &str, key: (u32, u8), w: u32, h: u32, len: usize) -> Result<(
 /// draws new points). The targets stay the pixel's (the label too, unless `bilinear_labels`):
 /// where a pixel straddles a class boundary no ray's label can be met exactly, which keeps
 /// training from carving the geometry to fit one wrong pseudo label ray by ray.
-pub struct JitteredRays<'r, 'a> {
-    pub rays: &'r ImageRays<'a>,
+pub struct JitteredRays<'r> {
+    pub rays: &'r ImageRays,
     pub seed: u64,
     /// Window width in pixels, 0..=1 (1: the whole pixel).
     pub width: f64,
@@ -457,7 +467,7 @@ pub struct JitteredRays<'r, 'a> {
     pub bilinear_labels: bool,
 }
 
-impl JitteredRays<'_, '_> {
+impl JitteredRays<'_> {
     /// The point of ray `r`'s pixel it is cast through, each coordinate in [0, 1).
     pub fn offset(&self, r: u32) -> [f64; 2] {
         self.draw(r).0
@@ -478,7 +488,7 @@ impl JitteredRays<'_, '_> {
     }
 }
 
-impl Rays for JitteredRays<'_, '_> {
+impl Rays for JitteredRays<'_> {
     fn prims(&self) -> &PrimInfo {
         &self.rays.prims
     }
