@@ -1,6 +1,6 @@
 //! Every ray of a scene's images as training draws them ([`ImageRays`]): the images the `rays`
 //! input planned (in its row order), each with its camera, the plan's hit counts, its targets
-//! (RGB, pseudo labels) borrowed from the `scene` tables and its stereo depth (from `depth` or
+//! (RGB, pseudo labels) read from the `scene` tables an image at a time and its stereo depth (from `depth` or
 //! `scene`) kept where it has a value; each ray's intervals are traced again when it is drawn.
 
 use std::collections::HashMap;
