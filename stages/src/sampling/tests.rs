@@ -662,7 +662,7 @@ fn bilinear_jitter_labels_draw_neighbours_with_their_bilinear_weight() {
         let (x, y) = (p as i64 % w, p as i64 / w);
         let q = ((y + shift[1] as i64).clamp(0, h - 1) * w + (x + shift[0] as i64).clamp(0, w - 1))
             as usize;
-        let Some(labels) = im.targets.labels else {
+        let Some(labels) = &im.targets.labels else {
             continue;
         };
         let want = traced.prims.label_class(labels[q]);
