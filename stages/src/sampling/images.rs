@@ -1,7 +1,8 @@
 //! Every ray of a scene's images as training draws them ([`ImageRays`]): the images the `rays`
 //! input planned (in its row order), each with its camera, the plan's hit counts, its targets
-//! (RGB, pseudo labels) read from the `scene` tables an image at a time and its stereo depth (from `depth` or
-//! `scene`) kept where it has a value; each ray's intervals are traced again when it is drawn.
+//! (RGB, pseudo labels) read from the `scene` tables an image at a time and its stereo depth
+//! (from `depth` or `scene`) kept where it has a value; each ray's intervals are traced again
+//! when it is drawn.
 
 use std::collections::HashMap;
 
@@ -31,9 +32,8 @@ pub struct TrainImage {
 }
 
 /// The per-pixel targets of one image: RGB (bytes), and pseudo labels where the image has them;
-/// read from the input tables an image at a time (the scene's `images` read whole took twice
-/// its size while its row groups were gathered into one batch: 1.9 GB at full size with
-/// fisheye cameras).
+/// copied out of the input tables an image at a time (read whole, a stored table is gathered
+/// from its row groups into one more copy).
 #[derive(Debug, Clone)]
 pub struct Targets {
     pub rgb: Vec<u8>,
