@@ -301,18 +301,16 @@ pub fn train_rays(inputs: &Inputs) -> Result<ImageRays> {
     let cams = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
     // Every per-image table an image at a time (one row group each): whole, the stereo depth
-    // and the plan's hits were the largest tables training held, and the images took twice
-    // their size while being read.
+    // and the plan's hits were the largest tables training held, and a table read whole is
+    // gathered from its row groups into one more copy.
     let images = ImageRows::new(inputs.stored("scene", "images")?, "images")?;
     let pseudo = ImageRows::new(inputs.stored("scene", "pseudo_labels")?, "pseudo_labels")?;
     let stereo = match inputs.optional_stored("depth", "stereo_depth")? {
         Some(t) => Some(t),
         None => inputs.optional_stored("scene", "stereo_depth")?,
-    };
-    let stereo_index: HashMap<(u32, u8), usize> = match stereo {
-        Some(t) => tables::frame_camera_index(&t.columns(&["frame", "camera"])?, "stereo_depth")?,
-        None => HashMap::new(),
-    };
+    }
+    .map(|t| ImageRows::new(t, "stereo_depth"))
+    .transpose()?;
     let plan_table = inputs.stored("rays", "ray_intervals")?;
     let plan = plan_table.columns(PLAN_COLUMNS)?;
     let params = plan_params(&plan)?;
@@ -355,9 +353,13 @@ pub fn train_rays(inputs: &Inputs) -> Result<ImageRays> {
             first_ray: first,
             hits: hits.to_vec(),
             targets: image_targets(key, w, h, &images, &pseudo)?,
-            depth: match (stereo, stereo_index.get(&key)) {
-                (Some(t), Some(&i)) => Some(image_depth(key, w, h, t, i)?),
-                _ => None,
+            depth: match &stereo {
+                Some(rows) => rows
+                    .index
+                    .get(&key)
+                    .map(|&i| image_depth(key, w, h, rows, i))
+                    .transpose()?,
+                None => None,
             },
         });
         first_ray += n as u64;
@@ -433,10 +435,16 @@ fn image_targets(
     Ok(Targets { rgb, labels })
 }
 
-/// The stereo depth of image `key` (`w` x `h`), row `row` of `table`.
-fn image_depth(key: (u32, u8), w: u32, h: u32, table: &Table, row: usize) -> Result<SparseDepth> {
-    let batch = table.rows(row..row + 1, Some(&["depth"]))?;
-    let dense = tables::get_list::<Float32Type>(&batch, "stereo_depth", "depth")?.row(0);
+/// The stereo depth of image `key` (`w` x `h`), row `row` of `stereo`.
+fn image_depth(
+    key: (u32, u8),
+    w: u32,
+    h: u32,
+    stereo: &ImageRows,
+    row: usize,
+) -> Result<SparseDepth> {
+    let batch = stereo.row(row, "depth")?;
+    let dense = tables::get_list::<Float32Type>(&batch, stereo.name, "depth")?.row(0);
     check_len("stereo_depth", key, w, h, dense.len())?;
     Ok(SparseDepth::from_dense(dense))
 }

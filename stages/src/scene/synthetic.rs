@@ -442,6 +442,16 @@ fn has_pseudo_labels(p: &SceneParams, row: &CameraRow) -> bool {
     row.camera == 0 || (row.camera >= 2 && p.fisheye_pseudo_labels)
 }
 
+/// Stereo depth: the left camera's images.
+fn has_stereo(row: &CameraRow) -> bool {
+    row.camera == 0
+}
+
+/// LiDAR depth: the left camera's images of eval frames.
+fn has_lidar(row: &CameraRow) -> bool {
+    row.camera == 0 && row.eval
+}
+
 /// What the pseudo-label noise model needs of `row`'s rendering `img`.
 fn noise_input<'a>(row: &CameraRow, img: &'a tracer::Rendered) -> noise::NoiseInput<'a> {
     noise::NoiseInput {
@@ -477,7 +487,7 @@ fn row_maps(p: &SceneParams, s: &Street, row: &CameraRow) -> RowMaps {
         }
         pl
     });
-    let stereo = (row.camera == 0).then(|| {
+    let stereo = has_stereo(row).then(|| {
         let (w, h) = (row.cam.width as usize, row.cam.height as usize);
         let model = depth::StereoModel {
             max_depth: p.stereo_max_depth_m,
@@ -487,7 +497,7 @@ fn row_maps(p: &SceneParams, s: &Street, row: &CameraRow) -> RowMaps {
         };
         depth::stereo_depth(&model, &img.depth, &img.overexposed, p.seed, row.frame)
     });
-    let lidar = (row.camera == 0 && row.eval).then(|| {
+    let lidar = has_lidar(row).then(|| {
         let cam = &row.cam;
         let r = cam.cam_to_world.matrix3;
         let origin = cam
@@ -756,8 +766,8 @@ pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
             } else {
                 None
             },
-            stereo: if row.camera == 0 { stereo.next() } else { None },
-            lidar: if row.camera == 0 && row.eval {
+            stereo: if has_stereo(row) { stereo.next() } else { None },
+            lidar: if has_lidar(row) {
                 lidar.next().map(|l| l.1)
             } else {
                 None
