@@ -172,6 +172,7 @@ impl TypedStage for Train {
             ));
         }
         p.backend.supports(&p.train.field)?;
+        p.backend.supports_train(&p.train)?;
         p.depth_class_ids()?;
         Ok(())
     }
@@ -229,7 +230,17 @@ impl TypedStage for Train {
                 sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
             };
             batch
-                .map(|b| RayBatch::from_samples(&b))
+                .map(|b| {
+                    let mut batch = RayBatch::from_samples(&b);
+                    if p.train.exposure {
+                        batch.targets.image = b
+                            .ray_ids
+                            .iter()
+                            .map(|&r| rays.image_index(r) as u32)
+                            .collect();
+                    }
+                    batch
+                })
                 .map_err(|e| TrainError::Batch(e.message().to_string()))
         };
         fit(trainer.as_mut(), iters, next_batch, |losses| {

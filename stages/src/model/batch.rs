@@ -43,6 +43,9 @@ pub struct RayTargets {
     pub depth: Vec<f32>,
     pub depth_valid: Vec<bool>,
     pub rgb: Vec<f32>,
+    /// The training image of each ray (an index into the trainer's per-image exposures), or
+    /// empty: no per-image exposure.
+    pub image: Vec<u32>,
 }
 
 /// One training batch (or the whole training set, from which batches are drawn).
@@ -146,6 +149,12 @@ impl RayTargets {
                 return Err(format!("targets.{name} has {len} values, expected {want}"));
             }
         }
+        if !self.image.is_empty() && self.image.len() != rays {
+            return Err(format!(
+                "targets.image has {} values, expected {rays} (or none)",
+                self.image.len()
+            ));
+        }
         if let Some(l) = self.labels.iter().find(|&&l| l < -1 || l >= classes as i32) {
             return Err(format!("label {l} is outside -1..{classes}"));
         }
@@ -169,6 +178,11 @@ impl RayTargets {
             depth: gather(&self.depth, indices, 1),
             depth_valid: gather(&self.depth_valid, indices, 1),
             rgb: gather(&self.rgb, indices, 3),
+            image: if self.image.is_empty() {
+                Vec::new()
+            } else {
+                gather(&self.image, indices, 1)
+            },
         }
     }
 }
@@ -200,6 +214,7 @@ impl RayBatch {
                     .collect(),
                 depth_valid,
                 rgb: b.target_rgb.clone(),
+                image: Vec::new(),
             },
         }
     }

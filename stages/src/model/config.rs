@@ -409,6 +409,18 @@ pub struct TrainConfig {
     /// 2.3 mIoU at the default budget. After 8 passes it leaves the default budget (7.7
     /// passes on the 1/8-scale street) as it was; a full-size run (0.12 passes) never gets there.
     pub late_jitter: Option<LateJitter>,
+    /// Learn a colour gain per training image (per channel, starting at 1) that scales the
+    /// rendered colour of its rays in L_rgb and in the gate of `losses.sky_prior`: cameras
+    /// expose each frame differently (auto exposure), and without it the field explains one
+    /// surface's brighter and darker images with floaters in front of it, or takes a
+    /// brighter-than-usual sky for something else. Rendering shows the field's own colour.
+    /// The fused engine only. Off by default (the paper has none).
+    #[serde(skip_serializing_if = "is_false")]
+    pub exposure: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// See [`TrainConfig::late_jitter`].
@@ -465,6 +477,7 @@ impl Default for TrainConfig {
             pixel_jitter: 0.25,
             jitter_labels: JitterLabels::Pixel,
             late_jitter: Some(LateJitter::default()),
+            exposure: false,
         }
     }
 }

@@ -120,6 +120,17 @@ impl Engine {
         }
     }
 
+    /// Training options this engine cannot run: per-image exposure on burn.
+    pub fn supports_train(self, config: &TrainConfig) -> Result<(), ModelError> {
+        match self {
+            Engine::Burn(_) if config.exposure => Err(ModelError::Unsupported {
+                engine: self.name(),
+                what: "has no per-image exposure (`train.exposure`); use backend fused".into(),
+            }),
+            _ => Ok(()),
+        }
+    }
+
     /// A trainer starting from the initial weights of `spec` with `config.field` as its
     /// architecture.
     pub fn trainer(
@@ -151,6 +162,7 @@ impl Engine {
             ));
         }
         self.supports(&spec.config)?;
+        self.supports_train(config)?;
         self.check_device()?;
         Ok(match self {
             Engine::Fused => Box::new(FusedTrainer::new(
@@ -275,6 +287,31 @@ mod tests {
         for trained in [None, Some(Engine::Burn(Backend::Flex)), Some(Engine::Fused)] {
             assert_eq!(Engine::for_rendering(trained, &grid), Engine::Fused);
         }
+    }
+
+    #[test]
+    fn per_image_exposure_is_the_fused_engine_s_alone() {
+        let config = TrainConfig {
+            exposure: true,
+            ..Default::default()
+        };
+        assert!(Engine::Fused.supports_train(&config).is_ok());
+        let err = Engine::Burn(Backend::default())
+            .supports_train(&config)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains(&format!("`backend: {}`", Backend::default().name()))
+                && err.contains("`train.exposure`"),
+            "{err}"
+        );
+        assert!(Engine::Burn(Backend::default())
+            .supports_train(&TrainConfig::default())
+            .is_ok());
+        // Off, it is not written: the canonical parameters (cache keys) stay as they were.
+        let json = serde_json::to_value(TrainConfig::default()).unwrap();
+        assert!(json.get("exposure").is_none(), "{json}");
+        assert_eq!(serde_json::to_value(&config).unwrap()["exposure"], true);
     }
 
     #[test]

@@ -134,9 +134,13 @@ impl ImageRays {
 
     /// The image of ray `r` and the pixel in it.
     pub fn locate(&self, r: u32) -> (&TrainImage, usize) {
-        let i = self.images.partition_point(|im| im.first_ray <= r) - 1;
-        let im = &self.images[i];
+        let im = &self.images[self.image_index(r)];
         (im, (r - im.first_ray) as usize)
+    }
+
+    /// The index in `images` of ray `r`'s image.
+    pub fn image_index(&self, r: u32) -> usize {
+        self.images.partition_point(|im| im.first_ray <= r) - 1
     }
 
     /// Whether ray `r` crosses a primitive, by the `intersect` stage's plan.

@@ -31,4 +31,4 @@ mod train;
 mod work;
 
 pub use field::{supports, FusedField, PARTITIONS};
-pub use train::FusedTrainer;
+pub use train::{FusedTrainer, EXPOSURE};

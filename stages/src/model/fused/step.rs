@@ -42,6 +42,7 @@ impl Work {
         config: &TrainConfig,
         sky: usize,
         weights: &[f32; LossTerm::ALL.len()],
+        gains: &[[f32; 3]],
     ) {
         let s = &batch.samples;
         let t = &batch.targets;
@@ -55,6 +56,8 @@ impl Work {
             }
         }
         self.sums = Sums::default();
+        self.dexposure.clear();
+        self.dexposure.resize(gains.len(), [0.0; 3]);
         if r1 == r0 {
             return;
         }
@@ -96,7 +99,14 @@ impl Work {
             let lr = r - r0;
             let mut excl = 0f32;
             let mut opacity = 0f32;
-            let mut state = RayState::default();
+            let mut state = RayState {
+                gain: if gains.is_empty() {
+                    [1.0; 3]
+                } else {
+                    gains[t.image[r] as usize]
+                },
+                ..RayState::default()
+            };
             let label = t.labels[r];
             let mut shat = 0f32;
             let mut sl = 0f32;
@@ -156,7 +166,7 @@ impl Work {
                 }
             }
             for ch in 0..3 {
-                let d = state.colour[ch] - t.rgb[r * 3 + ch];
+                let d = state.gain[ch] * state.colour[ch] - t.rgb[r * 3 + ch];
                 self.sums.terms[3] += (d * d) as f64;
             }
             if t.depth_valid[r] {
@@ -198,7 +208,7 @@ impl Work {
             return;
         }
         let d2: f32 = (0..3)
-            .map(|ch| (sky_rgb[ch] / count - t.rgb[r * 3 + ch]).powi(2))
+            .map(|ch| (state.gain[ch] * sky_rgb[ch] / count - t.rgb[r * 3 + ch]).powi(2))
             .sum();
         let tau = config.sky_prior_colour;
         state.sky_gate = (-d2 / (tau * tau)).exp();
@@ -283,10 +293,17 @@ impl Work {
             } else {
                 0.0
             };
+            // e g is d/dC of w (g C - C*)^2 for the rendered colour C and the image's gain
+            // g = exp(a); e g C is d/da.
             let mut cc = [0f32; 3];
             if w[3] != 0.0 {
                 for ch in 0..3 {
-                    cc[ch] = w[3] * 2.0 * (st.colour[ch] - t.rgb[r * 3 + ch]) / scale.rgb;
+                    let g = st.gain[ch];
+                    let e = w[3] * 2.0 * (g * st.colour[ch] - t.rgb[r * 3 + ch]) / scale.rgb;
+                    cc[ch] = e * g;
+                    if !self.dexposure.is_empty() {
+                        self.dexposure[t.image[r] as usize][ch] += e * g * st.colour[ch];
+                    }
                 }
             }
             let cd = if w[4] != 0.0 && t.depth_valid[r] {

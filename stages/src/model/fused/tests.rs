@@ -310,3 +310,109 @@ fn non_finite_targets_are_named_not_trained_on() {
             .all(|w| w.values.iter().all(|v| v.is_finite())));
     }
 }
+
+/// `train.exposure`: with every gain at 1 the losses and the field's gradients are those
+/// without it, and the gains' own gradients, and the field's under other gains, are the
+/// derivatives of the loss (central differences).
+#[test]
+fn exposure_gradients_match_finite_differences() {
+    let config = TrainConfig {
+        sigma_threshold: 0.3,
+        exposure: true,
+        ..Default::default()
+    };
+    let plain = varied_batch();
+    let mut batch = plain.clone();
+    batch.targets.image = (0..batch.samples.rays).map(|r| (r % 3) as u32).collect();
+    let (_, fused) = toy_fields();
+    let (spec, weights) = (fused.spec.clone(), fused.weights.clone());
+    let trainer = |weights: &[NamedWeight], log_gains: &[[f32; 3]]| {
+        let field = FusedField::from_weights(spec.clone(), weights.to_vec()).unwrap();
+        let mut t = FusedTrainer::new(config.clone(), field).unwrap();
+        t.set_exposure(log_gains.to_vec());
+        t
+    };
+    let total = |g: &crate::model::train::Gradients| -> f64 {
+        g.terms
+            .iter()
+            .map(|&(t, v)| config.losses.get(t) as f64 * v as f64)
+            .sum()
+    };
+
+    let without = trainer(&weights, &[]).gradients(&plain).unwrap();
+    let unit = trainer(&weights, &[[0.0; 3]; 3]).gradients(&batch).unwrap();
+    assert_eq!(unit.terms, without.terms);
+    assert_eq!(unit.grads[..without.grads.len()], without.grads[..]);
+    assert_eq!(unit.grads.last().unwrap().name, EXPOSURE);
+
+    let gains = [[0.2, -0.1, 0.05], [-0.3, 0.1, 0.0], [0.1, 0.25, -0.2]];
+    let got = trainer(&weights, &gains).gradients(&batch).unwrap();
+    assert!(
+        total(&got) > total(&unit) * 0.5,
+        "the gains change the colour loss"
+    );
+    let h = 1e-2f32;
+    let exposure = &got.grads.last().unwrap().values;
+    for k in 0..9 {
+        let (mut up, mut down) = (gains, gains);
+        up[k / 3][k % 3] += h;
+        down[k / 3][k % 3] -= h;
+        let fd = (total(&trainer(&weights, &up).gradients(&batch).unwrap())
+            - total(&trainer(&weights, &down).gradients(&batch).unwrap()))
+            / (2.0 * h as f64);
+        let an = exposure[k] as f64;
+        assert!(
+            (fd - an).abs() <= 1e-4 + 2e-2 * an.abs(),
+            "log gain {k}: analytic {an}, finite difference {fd}"
+        );
+    }
+    // The colour head's output bias: its gradient passes through the gains.
+    let b = params::index(&weights, "colour.layers.1.bias").unwrap();
+    let analytic = &got.grads[b].values;
+    for ch in 0..3 {
+        let shifted = |d: f32| {
+            let mut w = weights.clone();
+            w[b].values[ch] += d;
+            total(&trainer(&w, &gains).gradients(&batch).unwrap())
+        };
+        let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
+        let an = analytic[ch] as f64;
+        assert!(
+            an.abs() > 1e-4 && (fd - an).abs() <= 1e-4 + 2e-2 * an.abs(),
+            "colour bias {ch}: analytic {an}, finite difference {fd}"
+        );
+    }
+}
+
+/// A gain learns an image's exposure: two copies of the same rays, the second's colours
+/// darker by a known factor, and only that image's gains fall, towards the log of the factor.
+#[test]
+fn exposure_learns_a_darker_image() {
+    let config = TrainConfig {
+        exposure: true,
+        lr: 1e-2,
+        lr_final_factor: 1.0,
+        ..Default::default()
+    };
+    let one = varied_batch();
+    let rays = one.samples.rays;
+    let mut batch = one.select(&(0..2 * rays).map(|i| i % rays).collect::<Vec<_>>());
+    let factor = 0.7f32;
+    for v in &mut batch.targets.rgb[3 * rays..] {
+        *v *= factor;
+    }
+    batch.targets.image = (0..2 * rays).map(|i| (i / rays) as u32).collect();
+    let (_, fused) = toy_fields();
+    let mut trainer = FusedTrainer::new(config, fused).unwrap();
+    for _ in 0..400 {
+        trainer.step(&batch).unwrap();
+    }
+    let g = trainer.exposure();
+    for ch in 0..3 {
+        let ratio = (g[1][ch] - g[0][ch]).exp();
+        assert!(
+            (ratio - factor).abs() < 0.05,
+            "channel {ch}: gain ratio {ratio}, the targets' {factor}"
+        );
+    }
+}

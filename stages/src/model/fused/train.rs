@@ -16,6 +16,9 @@ use crate::model::loss::{LossTerm, LossTerms};
 use crate::model::params::NamedWeight;
 use crate::model::train::Gradients;
 
+/// Name of the per-image log colour gains in [`FusedTrainer::gradients`].
+pub const EXPOSURE: &str = "exposure.log_gain";
+
 /// Trains a [`FusedField`] with the losses, clipping and Adam of the burn engine's trainer.
 pub struct FusedTrainer {
     field: FusedField,
@@ -24,6 +27,12 @@ pub struct FusedTrainer {
     iteration: usize,
     moment1: Vec<Vec<f32>>,
     moment2: Vec<Vec<f32>>,
+    /// Per training image (`train.exposure`): the log colour gain, its gradient of the last
+    /// step and Adam's moments; grown to the largest image index a batch names.
+    exposure: Vec<[f32; 3]>,
+    exposure_grad: Vec<[f32; 3]>,
+    exposure_m1: Vec<[f32; 3]>,
+    exposure_m2: Vec<[f32; 3]>,
     work: Vec<Work>,
     /// Seconds spent in the last step's phases (forward, backward, reduce + Adam).
     pub timings: [f64; 3],
@@ -46,6 +55,10 @@ impl FusedTrainer {
             iteration: 0,
             moment1: zeros.clone(),
             moment2: zeros,
+            exposure: Vec::new(),
+            exposure_grad: Vec::new(),
+            exposure_m1: Vec::new(),
+            exposure_m2: Vec::new(),
             work: (0..PARTITIONS).map(|_| Work::default()).collect(),
             timings: [0.0; 3],
         })
@@ -61,6 +74,19 @@ impl FusedTrainer {
 
     pub fn iteration(&self) -> usize {
         self.iteration
+    }
+
+    /// Each training image's log colour gain (`train.exposure`), by image index.
+    pub fn exposure(&self) -> &[[f32; 3]] {
+        &self.exposure
+    }
+
+    /// Sets the log colour gains (tests), resetting their optimiser state.
+    pub fn set_exposure(&mut self, log_gains: Vec<[f32; 3]>) {
+        let n = log_gains.len();
+        self.exposure = log_gains;
+        self.exposure_m1 = vec![[0.0; 3]; n];
+        self.exposure_m2 = vec![[0.0; 3]; n];
     }
 
     /// Loss values and summed gradients of `batch` (all enabled terms, or only `only`),
@@ -102,12 +128,27 @@ impl FusedTrainer {
         let params = field.params();
         let config = &self.config;
         let sky = s.classes - 1;
+        if config.exposure && !t.image.is_empty() {
+            let n = t.image.iter().map(|&i| i as usize + 1).max().unwrap_or(0);
+            if n > self.exposure.len() {
+                self.exposure.resize(n, [0.0; 3]);
+                self.exposure_m1.resize(n, [0.0; 3]);
+                self.exposure_m2.resize(n, [0.0; 3]);
+            }
+        }
+        let gains: Vec<[f32; 3]> = if config.exposure && !t.image.is_empty() {
+            self.exposure.iter().map(|a| a.map(f32::exp)).collect()
+        } else {
+            Vec::new()
+        };
         let start = Instant::now();
         self.work[..parts]
             .par_iter_mut()
             .zip(&bounds)
             .for_each(|(w, &(r0, r1))| {
-                w.forward_step(field, &params, batch, r0, r1, heads, config, sky, &weights);
+                w.forward_step(
+                    field, &params, batch, r0, r1, heads, config, sky, &weights, &gains,
+                );
             });
         let mut sums = Sums::default();
         for w in &self.work[..parts] {
@@ -170,6 +211,15 @@ impl FusedTrainer {
         self.work[0].grads[field.grid] = table;
         self.timings[0] = forward;
         self.timings[1] = start.elapsed().as_secs_f64() - forward;
+        self.exposure_grad.clear();
+        self.exposure_grad.resize(gains.len(), [0.0; 3]);
+        for w in &self.work[..parts] {
+            for (sum, g) in self.exposure_grad.iter_mut().zip(&w.dexposure) {
+                for ch in 0..3 {
+                    sum[ch] += g[ch];
+                }
+            }
+        }
         // Sum the partitions' MLP gradients into the first, in partition order.
         let (first, rest) = self.work.split_at_mut(1);
         let rest = &rest[..parts - 1];
@@ -195,7 +245,7 @@ impl FusedTrainer {
     /// Loss values and gradients of `batch` without updating anything.
     pub fn gradients(&mut self, batch: &RayBatch) -> Result<Gradients, TrainError> {
         let terms = self.compute(batch, None)?;
-        let grads = self
+        let mut grads: Vec<NamedWeight> = self
             .field
             .weights
             .iter()
@@ -206,6 +256,13 @@ impl FusedTrainer {
                 values: g.clone(),
             })
             .collect();
+        if !self.exposure_grad.is_empty() {
+            grads.push(NamedWeight {
+                name: EXPOSURE.to_string(),
+                shape: vec![self.exposure_grad.len(), 3],
+                values: self.exposure_grad.concat(),
+            });
+        }
         Ok(Gradients { terms, grads })
     }
 
@@ -220,6 +277,16 @@ impl FusedTrainer {
             }
             total += s;
         }
+        let s: f64 = self
+            .exposure_grad
+            .iter()
+            .flatten()
+            .map(|&v| (v as f64) * (v as f64))
+            .sum();
+        if !s.is_finite() {
+            return Err(EXPOSURE.to_string());
+        }
+        total += s;
         Ok(total.sqrt() as f32)
     }
 
@@ -265,6 +332,19 @@ impl FusedTrainer {
                         p[i] -= lr * update;
                     }
                 });
+        }
+        for (k, g) in self.exposure_grad.iter().enumerate() {
+            let (p, m, v) = (
+                &mut self.exposure[k],
+                &mut self.exposure_m1[k],
+                &mut self.exposure_m2[k],
+            );
+            for ch in 0..3 {
+                let gi = g[ch] * factor;
+                m[ch] = b1 * m[ch] + (1.0 - b1) * gi;
+                v[ch] = b2 * v[ch] + (1.0 - b2) * gi * gi;
+                p[ch] -= lr * (m[ch] / c1) / ((v[ch] / c2).sqrt() + eps);
+            }
         }
         self.timings[2] = adam_start.elapsed().as_secs_f64();
         self.iteration += 1;

@@ -20,6 +20,8 @@ pub(super) struct RayState {
     pub(super) remainder_live: bool,
     /// The gate of L_sky (0: the term does not act on this ray).
     pub(super) sky_gate: f32,
+    /// The colour gain of the ray's image (1 without per-image exposure).
+    pub(super) gain: [f32; 3],
 }
 
 /// Unnormalised loss sums of a partition, and the L_3D point count.
@@ -32,6 +34,8 @@ pub(super) struct Sums {
 /// Buffers of one partition, reused across steps (they only grow).
 #[derive(Default)]
 pub(super) struct Work {
+    /// Gradient of the loss with respect to each image's log colour gain.
+    pub(super) dexposure: Vec<[f32; 3]>,
     pub(super) unit: Vec<f32>,
     /// Corner rows and weights, level-major: `[levels, points, 8]`.
     pub(super) idx: Vec<i32>,
