@@ -385,7 +385,7 @@ fn exposure_gradients_match_finite_differences() {
 }
 
 /// A gain learns an image's exposure: two copies of the same rays, the second's colours
-/// darker by a known factor, and only that image's gains fall, towards the log of the factor.
+/// darker by a known factor, and the ratio of the two images' gains goes to that factor.
 #[test]
 fn exposure_learns_a_darker_image() {
     let config = TrainConfig {
