@@ -128,6 +128,7 @@ impl FusedTrainer {
         let params = field.params();
         let config = &self.config;
         let sky = s.classes - 1;
+        let mut gains: Vec<[f32; 3]> = Vec::new();
         if config.exposure && !t.image.is_empty() {
             let n = t.image.iter().map(|&i| i as usize + 1).max().unwrap_or(0);
             if n > self.exposure.len() {
@@ -135,12 +136,8 @@ impl FusedTrainer {
                 self.exposure_m1.resize(n, [0.0; 3]);
                 self.exposure_m2.resize(n, [0.0; 3]);
             }
+            gains = self.exposure.iter().map(|a| a.map(f32::exp)).collect();
         }
-        let gains: Vec<[f32; 3]> = if config.exposure && !t.image.is_empty() {
-            self.exposure.iter().map(|a| a.map(f32::exp)).collect()
-        } else {
-            Vec::new()
-        };
         let start = Instant::now();
         self.work[..parts]
             .par_iter_mut()
