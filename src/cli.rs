@@ -12,6 +12,8 @@ use anyhow::{anyhow, Context};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use clap::{Args, Parser, Subcommand};
 
+mod kinds;
+
 use crate::{
     bench::{self, BenchError},
     config::{self, ConfigError, Override, Pipeline},
@@ -223,10 +225,14 @@ pub enum Command {
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
-    /// The stage kinds this build knows, with their inputs, outputs and default params.
+    /// The stage kinds this build knows; with KIND, its inputs, outputs and every parameter
+    /// (dotted path, type, default, what it does).
     Kinds {
-        /// Only this kind.
+        /// Only this kind, with every parameter.
         kind: Option<String>,
+        /// Print the kind as a commented YAML stage to paste into a pipeline file.
+        #[arg(long, requires = "kind")]
+        yaml: bool,
     },
 }
 
@@ -346,7 +352,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             jobs,
             pipeline,
         } => cmd_bench(&suite, out, jobs, &pipeline),
-        Command::Kinds { kind } => cmd_kinds(kind.as_deref()),
+        Command::Kinds { kind, yaml } => cmd_kinds(kind.as_deref(), yaml),
     }
 }
 
@@ -662,40 +668,35 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
     Ok(0)
 }
 
-fn cmd_kinds(only: Option<&str>) -> Result<i32> {
+fn cmd_kinds(only: Option<&str>, yaml: bool) -> Result<i32> {
     let all = stages::kinds::registry();
-    let mut shown = 0;
-    for k in &all {
-        if only.is_some_and(|o| o != k.kind()) || (only.is_none() && k.kind().starts_with("test_"))
-        {
-            continue;
-        }
-        shown += 1;
-        println!(
-            "{} (version {}): {}",
-            k.kind(),
-            k.version(),
-            k.description()
-        );
-        for s in k.inputs() {
+    let Some(name) = only else {
+        for k in all.iter().filter(|k| !k.kind().starts_with("test_")) {
             println!(
-                "  input  {}{}: {} [{}]",
-                s.name,
-                if s.optional { " (optional)" } else { "" },
-                s.doc,
-                s.tables.join(", ")
+                "{} (version {}): {}",
+                k.kind(),
+                k.version(),
+                k.description()
             );
+            let top: Vec<String> = k
+                .param_docs()
+                .iter()
+                .filter(|d| d.depth == 0)
+                .map(|d| d.path.clone())
+                .collect();
+            println!("  params {}", top.join(", "));
         }
-        println!("  output {}", k.outputs().join(", "));
-        if let Some(obj) = k.default_params().as_object() {
-            for (name, v) in obj {
-                println!("  param  {name} = {}", crate::config::show_json(v));
-            }
-        }
-        println!();
-    }
-    if shown == 0 {
-        return Err(usage(format!("no stage kind `{}`", only.unwrap_or(""))));
+        println!("\n`pipe kinds KIND` lists a kind's parameters; `pipe kinds KIND --yaml` writes them as YAML.");
+        return Ok(0);
+    };
+    let k = all
+        .iter()
+        .find(|k| k.kind() == name)
+        .ok_or_else(|| usage(format!("no stage kind `{name}`")))?;
+    if yaml {
+        print!("{}", kinds::yaml(k.as_ref()));
+    } else {
+        print!("{}", kinds::text(k.as_ref()));
     }
     Ok(0)
 }

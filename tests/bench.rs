@@ -156,14 +156,14 @@ fn bad_suites_are_usage_errors_naming_the_file_and_key() {
 
     fs::write(
         ws.dir().join("key.yaml"),
-        "name: x\nscenes: [{name: a}]\nbudgets: [1]\nvariants:\n  - name: v\n    set: {train.train.losses.nope: 0}\n",
+        "name: x\nscenes: [{name: a}]\nbudgets: [1]\nvariants:\n  - name: v\n    set: {train.losses.nope: 0}\n",
     )
     .unwrap();
     let (code, _, err) = ws.cmd("bench", &["--suite", "key.yaml"]);
     assert_eq!(code, 2, "{err}");
     assert!(
-        err.contains("key.yaml:6:11: `variants.0.set.train.train.losses.nope`")
-            && err.contains("unknown parameter `train.losses.nope`"),
+        err.contains("key.yaml:6:11: `variants.0.set.train.losses.nope`")
+            && err.contains("unknown parameter `losses.nope` of stage `train`"),
         "{err}"
     );
     assert!(

@@ -217,7 +217,7 @@ fn tiny_pipeline_runs_and_its_metrics_match_its_files() {
 
     // Adaptive rendering (the default: a coarse grid first, the rest where it disagrees) gives
     // the labels of rendering every pixel, but for details finer than its cells.
-    let every = "render.adaptive=false";
+    let every = "render.coarse_stride=1";
     ws.run_ok(&["--until", "render", "--set", every]);
     let (code, out, err) = ws.cmd("export", &["render", "--to", "every", "--set", every]);
     assert_eq!(code, 0, "{out}{err}");
@@ -461,16 +461,15 @@ fn losses_of(show: &str) -> Vec<f32> {
         .collect()
 }
 
-/// The side fisheye cameras through the pipeline: planned, trained on (colour and their pseudo
-/// labels), rendered (unlabelled and black outside the lens circle) and evaluated.
+/// The side fisheye cameras through the pipeline: listed once, in the scene, they are planned,
+/// trained on (colour and their pseudo labels), rendered (unlabelled and black outside the lens
+/// circle) and evaluated; a stage may still narrow the cameras (here evaluate).
 #[test]
 fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     let ws = Workspace::new(common::TINY_PIPELINE);
     let sets = [
-        "scene.fisheye=true",
+        "scene.cameras=[image_00, image_01, image_02, image_03]",
         "scene.fisheye_pseudo_labels=true",
-        "rays.cameras=[0, 1, 2, 3]",
-        "train.cameras=[image_00, image_01, image_02, image_03]",
         "evaluate.cameras=[2, 3]",
     ];
     let args: Vec<&str> = sets.iter().flat_map(|s| ["--set", *s]).collect();
@@ -507,10 +506,10 @@ fn fisheye_cameras_are_trained_rendered_and_evaluated() {
     let fisheye_only = metrics["panoptic_nerf"].clone();
     assert!(fisheye_only["miou"].as_f64().unwrap() > 0.0, "{metrics}");
 
-    // One evaluation of both camera models: per-model scores equal separate evaluations, the
-    // pixels add up, and labels agree across the models (cross-view MC).
-    let mut both: Vec<&str> = args[..args.len() - 2].to_vec();
-    both.extend(["--set", "evaluate.cameras=[image_00, image_02, image_03]"]);
+    // One evaluation of both camera models, by default (the scene's evaluation images: every
+    // camera but the right one): per-model scores equal separate evaluations, the pixels add up,
+    // and labels agree across the models (cross-view MC).
+    let both: Vec<&str> = args[..args.len() - 2].to_vec();
     ws.run_ok(&both);
     let mut ev = vec!["evaluate", "--to", "eval_both"];
     ev.extend(&both);
@@ -602,8 +601,8 @@ fn fisheye_pipeline_gets_motion_stereo_depth_and_evaluates_chosen_frames() {
         "scene.frames=6",
         "scene.eval_every=2",
         "scene.scale=0.0625",
-        "train.train.iterations=40",
-        "train.train.rays_per_batch=256",
+        "train.schedule.iterations=40",
+        "train.schedule.rays_per_batch=256",
     ];
     let mut args: Vec<&str> = sets.iter().flat_map(|s| ["--set", *s]).collect();
     ws.run_ok(&args);

@@ -53,7 +53,7 @@ const DOWNSTREAM: &str = "
     uses: train
     inputs: {scene: scene, rays: rays}
     params:
-      train: {iterations: 40, rays_per_batch: 256}
+      schedule: {iterations: 40, rays_per_batch: 256}
   render:
     uses: render
     inputs: {scene: scene, rays: rays, train: train}
@@ -254,7 +254,7 @@ fn the_exported_synthetic_scene_runs_through_the_pipeline_with_the_same_metrics(
         "scene.eval_every=2".into(),
         format!("scene.lidar={}", stages::scene::kitti360::LIDAR_PATTERN),
         "depth.max_disparity=48".into(),
-        "train.train={iterations: 40, rays_per_batch: 256}".into(),
+        "train.schedule={iterations: 40, rays_per_batch: 256}".into(),
     ];
     let mut args = vec![
         "-f".to_string(),

@@ -335,7 +335,7 @@ fn train_render_evaluate(scene: &Tables, what: &str) -> (Tables, Tables) {
     assert_finite(&rays, &format!("{what}: rays"));
     let train = stage(
         "train",
-        json!({"train": {"iterations": 6, "rays_per_batch": 32}}),
+        json!({"schedule": {"iterations": 6, "rays_per_batch": 32}}),
         &[("scene", scene), ("rays", &rays)],
     );
     assert_finite(&train, &format!("{what}: train"));
@@ -398,7 +398,7 @@ fn rays_that_hit_nothing_are_sky_and_a_scene_of_only_such_rays_is_a_clear_error(
     );
     let train = stages::kinds::find("train").unwrap();
     let p = train
-        .canonical_params(&json!({"train": {"iterations": 2}}))
+        .canonical_params(&json!({"schedule": {"iterations": 2}}))
         .unwrap();
     let mem = MemoryInputs::new([("scene", scene.clone()), ("rays", rays.clone())]);
     let e = train

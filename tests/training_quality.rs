@@ -22,7 +22,8 @@ stages:
     uses: train
     inputs: {scene: scene, rays: rays}
     params:
-      train: {iterations: 300, rays_per_batch: 512, lr: 0.005, lr_final_factor: 0.1}
+      schedule: {iterations: 300, rays_per_batch: 512}
+      optimiser: {lr: 0.005, lr_final_factor: 0.1}
   render:
     uses: render
     inputs: {scene: scene, rays: rays, train: train}

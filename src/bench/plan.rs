@@ -142,6 +142,7 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
         ));
     };
     let kind = stages::kinds::find(&s.kind).ok_or_else(|| format!("unknown kind `{}`", s.kind))?;
+    let path = key.split_once('.').map_or("", |(_, rest)| rest);
     let mut cur = kind.default_params();
     let mut walked = Vec::new();
     for p in parts {
@@ -149,6 +150,9 @@ fn check_key(base: &[BaseStage], base_file: &Path, key: &str) -> Result<(), Stri
             match &cur {
                 Value::Object(o) => {
                     o.get(p).cloned().ok_or_else(|| {
+                        if let Some(to) = kind.moved_param(path) {
+                            return stages::params_doc::moved_message(stage, &s.kind, path, &to);
+                        }
                         format!(
                     "unknown parameter `{}` of stage `{stage}` (kind `{}`; known there: {})",
                     walked.iter().chain([&p]).cloned().collect::<Vec<_>>().join("."),
@@ -575,7 +579,7 @@ pub fn build(
 mod tests {
     use super::*;
 
-    const BASE: &str = "stages:\n  scene:\n    uses: synthetic_scene\n    params: {frames: 6}\n  rays:\n    uses: intersect\n    inputs: {scene: scene}\n  train:\n    uses: train\n    inputs: {scene: scene, rays: rays}\n    params:\n      train: {iterations: 40}\n  render:\n    uses: render\n    inputs: {scene: scene, rays: rays, train: train}\n  evaluate:\n    uses: evaluate\n    inputs: {scene: scene, render: render}\n  report:\n    uses: report\n    inputs: {scene: scene, evaluate: evaluate, render: render, train: train}\n";
+    const BASE: &str = "stages:\n  scene:\n    uses: synthetic_scene\n    params: {frames: 6}\n  rays:\n    uses: intersect\n    inputs: {scene: scene}\n  train:\n    uses: train\n    inputs: {scene: scene, rays: rays}\n    params:\n      schedule: {iterations: 40}\n  render:\n    uses: render\n    inputs: {scene: scene, rays: rays, train: train}\n  evaluate:\n    uses: evaluate\n    inputs: {scene: scene, render: render}\n  report:\n    uses: report\n    inputs: {scene: scene, evaluate: evaluate, render: render, train: train}\n";
 
     fn suite(variants: &str) -> Suite {
         super::super::suite::parse(
@@ -587,7 +591,9 @@ mod tests {
 
     #[test]
     fn shares_stages_that_do_not_depend_on_variant_or_budget() {
-        let s = suite("  - {name: full}\n  - {name: nod, set: {train.train.losses.depth: 0}, budgets: [10]}\n");
+        let s = suite(
+            "  - {name: full}\n  - {name: nod, set: {train.losses.depth: 0}, budgets: [10]}\n",
+        );
         let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
         assert_eq!(p.roles, ["scene", "rays", "train", "render", "evaluate"]);
         assert_eq!(p.runs.len(), 3);
@@ -597,8 +603,8 @@ mod tests {
         // scene, rays + 3 x (train, render, evaluate).
         assert_eq!(pipe.stages.len(), 11);
         let t = &pipe.stages[pipe.index_of("train-a-nod-b10").unwrap()];
-        assert_eq!(t.params["train"]["losses"]["depth"], 0.0);
-        assert_eq!(t.params["train"]["iterations"], 10);
+        assert_eq!(t.params["losses"]["depth"], 0.0);
+        assert_eq!(t.params["schedule"]["iterations"], 10);
     }
 
     #[test]
@@ -612,7 +618,7 @@ mod tests {
             .iter()
             .map(|r| {
                 let t = &pipe.stages[pipe.index_of(&r.instances["train"]).unwrap()];
-                t.params["train"]["iterations"].clone()
+                t.params["schedule"]["iterations"].clone()
             })
             .collect();
         assert_eq!(iterations, [5, 10]);
@@ -631,7 +637,7 @@ mod tests {
         assert_eq!(p.spec.table, "metrics");
         let pipe = crate::config::parse(Path::new("gen.yaml"), &p.yaml, &[]).unwrap();
         let t = &pipe.stages[pipe.index_of("train-a-b5").unwrap()];
-        assert_eq!(t.params["train"]["iterations"], 5);
+        assert_eq!(t.params["schedule"]["iterations"], 5);
         let no_eval = BASE.split("  evaluate:").next().unwrap();
         let e = build(&s, Path::new("p.yaml"), no_eval, &[], Path::new("/c")).unwrap_err();
         assert!(
@@ -642,18 +648,28 @@ mod tests {
 
     #[test]
     fn unknown_override_keys_name_the_suite_and_key() {
-        let s = suite("  - name: v\n    set: {train.train.losses.nope: 0}\n");
+        let s = suite("  - name: v\n    set: {train.losses.nope: 0}\n");
         let e = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap_err();
         let msg = e.to_string();
         assert!(
-            msg.starts_with("s.yaml:6:11: `variants.0.set.train.train.losses.nope`"),
+            msg.starts_with("s.yaml:6:11: `variants.0.set.train.losses.nope`"),
             "{msg}"
         );
         assert!(
-            msg.contains("unknown parameter `train.losses.nope`"),
+            msg.contains("unknown parameter `losses.nope` of stage `train`"),
             "{msg}"
         );
-        let s = suite("  - {name: v, optional: true, set: {train.train.nope: 0}}\n  - {name: w}\n");
+        // A key of the layout before December 2026 names its new place.
+        let s = suite("  - name: v\n    set: {train.train.lr: 0.1}\n");
+        let msg = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("`train.train.lr` moved to `train.optimiser.lr`"),
+            "{msg}"
+        );
+        let s =
+            suite("  - {name: v, optional: true, set: {train.schedule.nope: 0}}\n  - {name: w}\n");
         let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
         assert_eq!(p.skipped.len(), 1);
         assert_eq!(p.runs.len(), 2);
@@ -663,7 +679,7 @@ mod tests {
     fn seeds_repeat_every_run_and_name_only_the_stages_they_reach() {
         let s = super::super::suite::parse(
             Path::new("s.yaml"),
-            "name: t\nscenes: [{name: a}]\nbudgets: [5, 10]\nseeds: {param: train.train.seed, values: [0, 7]}\nvariants:\n  - {name: full}\n",
+            "name: t\nscenes: [{name: a}]\nbudgets: [5, 10]\nseeds: {param: train.seed, values: [0, 7]}\nvariants:\n  - {name: full}\n",
         )
         .unwrap();
         let p = build(&s, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap();
@@ -677,8 +693,8 @@ mod tests {
             let train = format!("train-a-b{}-s{seed}", r.budget);
             assert_eq!(r.instances["train"], train);
             let t = &pipe.stages[pipe.index_of(&train).unwrap()];
-            assert_eq!(t.params["train"]["seed"], seed);
-            assert_eq!(t.params["train"]["iterations"], r.budget);
+            assert_eq!(t.params["seed"], seed);
+            assert_eq!(t.params["schedule"]["iterations"], r.budget);
         }
         let cells: Vec<(u64, Option<u64>)> = p.cells().map(|r| (r.budget, r.seed)).collect();
         assert_eq!(cells, [(5, Some(0)), (10, Some(0))]);
@@ -687,10 +703,10 @@ mod tests {
         assert_eq!(seeds, [Some(0), Some(7)]);
         let bad = super::super::suite::parse(
             Path::new("s.yaml"),
-            "name: t\nscenes: [{name: a}]\nbudgets: [5]\nseeds: {param: train.train.sed, values: [0]}\nvariants:\n  - {name: full}\n",
+            "name: t\nscenes: [{name: a}]\nbudgets: [5]\nseeds: {param: train.sed, values: [0]}\nvariants:\n  - {name: full}\n",
         )
         .unwrap();
         let e = build(&bad, Path::new("p.yaml"), BASE, &[], Path::new("/c")).unwrap_err();
-        assert!(e.to_string().contains("train.sed"), "{e}");
+        assert!(e.to_string().contains("`sed` of stage `train`"), "{e}");
     }
 }

@@ -5,21 +5,21 @@
 //!
 //! ```yaml
 //! name: quick
-//! set: {train.train.rays_per_batch: 256}      # applied to every run
+//! set: {train.schedule.rays_per_batch: 256}      # applied to every run
 //! scenes:
 //!   - {name: tiny0, set: {scene.seed: 0, scene.frames: 6}}
 //! budgets: [50, 150, 400]                     # values of `budget_param`
-//! budget_param: train.train.iterations        # optional: the budget parameter of the stage
+//! budget_param: train.schedule.iterations        # optional: the budget parameter of the stage
 //!                                             # whose kind has one (`Stage::budget_param`)
 //! paper:                                      # optional: what the variants' `paper:` are
 //!   column: paper                             # the ablation table's column (default `paper`)
 //!   note: The last column is the paper's figure (RMSE / delta / mIoU).
 //! seeds:                                      # optional: every run once per value of `param`;
-//!   param: train.train.seed                   # tables show the mean and the spread
+//!   param: train.seed                   # tables show the mean and the spread
 //!   values: [0, 1, 2]
 //! variants:
 //!   - {name: complete, paper: "5.23 / 95.1 / 81.4"}
-//!   - {name: no_depth, label: "w/o L_depth", set: {train.train.losses.depth: 0}, budgets: [400]}
+//!   - {name: no_depth, label: "w/o L_depth", set: {train.losses.depth: 0}, budgets: [400]}
 //! ```
 //!
 //! A `set` key is `STAGE.PARAM[.FIELD...]` of the base pipeline (as `pipe run --set`, but it may
@@ -625,25 +625,25 @@ mod tests {
         let base = "name: x\nscenes: [{name: a}]\nbudgets: [1]\nvariants: [{name: v}]\n";
         let s = parse(
             Path::new("s.yaml"),
-            &format!("{base}seeds: {{param: train.train.seed, values: [3, 1]}}\n"),
+            &format!("{base}seeds: {{param: train.seed, values: [3, 1]}}\n"),
         )
         .unwrap();
         let seeds = s.seeds.unwrap();
-        assert_eq!(seeds.param.key, "train.train.seed");
+        assert_eq!(seeds.param.key, "train.seed");
         assert_eq!(seeds.values, [3, 1]);
         assert!(parse(Path::new("s.yaml"), base).unwrap().seeds.is_none());
         for (seeds, want) in [
-            ("{param: train.train.seed, values: [1, 1]}", "s.yaml:5:"),
-            ("{param: train.train.seed, values: []}", "s.yaml:5:"),
+            ("{param: train.seed, values: [1, 1]}", "s.yaml:5:"),
+            ("{param: train.seed, values: []}", "s.yaml:5:"),
             ("{param: seed, values: [1]}", "s.yaml:5:"),
-            ("{param: train.train.seed, valeus: [1]}", "s.yaml:5:"),
+            ("{param: train.seed, valeus: [1]}", "s.yaml:5:"),
         ] {
             let e = parse(Path::new("s.yaml"), &format!("{base}seeds: {seeds}\n")).unwrap_err();
             assert!(e.to_string().starts_with(want), "{seeds}: {e}");
         }
         let e = parse(
             Path::new("s.yaml"),
-            &format!("{base}seeds: {{param: train.train.seed, values: [2, 2]}}\n"),
+            &format!("{base}seeds: {{param: train.seed, values: [2, 2]}}\n"),
         )
         .unwrap_err();
         assert!(e.to_string().contains("seed 2 is listed twice"), "{e}");

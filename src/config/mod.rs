@@ -368,20 +368,20 @@ mod tests {
     fn overrides_reach_inside_nested_params_and_keep_their_siblings() {
         let text =
             std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/pipeline.yaml")).unwrap();
-        let sets = ["train.train.lr=0.01", "train.sampling.samples=16"];
+        let sets = ["train.optimiser.lr=0.01", "train.sampling.samples=16"];
         let o: Vec<Override> = sets.iter().map(|s| Override::parse(s).unwrap()).collect();
         let plain = parse(Path::new("pipeline.yaml"), &text, &[]).unwrap();
         let plain = &plain.stages[plain.index_of("train").unwrap()].params;
         let p = parse(Path::new("pipeline.yaml"), &text, &o).unwrap();
         let train = &p.stages[p.index_of("train").unwrap()].params;
-        assert_eq!(train["train"]["lr"], 0.01);
-        assert_ne!(plain["train"]["lr"], 0.01);
+        assert_eq!(train["optimiser"]["lr"], 0.01);
+        assert_ne!(plain["optimiser"]["lr"], 0.01);
         assert_eq!(
-            train["train"]["iterations"], plain["train"]["iterations"],
+            train["optimiser"]["adam_beta1"], plain["optimiser"]["adam_beta1"],
             "sibling kept: {train}"
         );
         assert_eq!(train["sampling"]["samples"], 16);
-        let bad = Override::parse("train.train.no_such_field=1").unwrap();
+        let bad = Override::parse("train.optimiser.no_such_field=1").unwrap();
         let e = parse(Path::new("pipeline.yaml"), &text, &[bad])
             .err()
             .unwrap();

@@ -244,6 +244,7 @@ fn params_of(
             ))
         }
     }
+    moved_params(d, kind_name, kind, &given, settings)?;
     overrides::apply(&mut given, settings);
     for (key, v, l) in &given {
         let pkey = format!("params.{key}");
@@ -319,6 +320,49 @@ fn params_of(
             None => d.err(d.key("params"), None, msg),
         }
     })
+}
+
+/// A parameter of an earlier layout (`train.train.lr`), in the file or in a setting, is an
+/// error that names where it went (`train.optimiser.lr`): never a silent default.
+fn moved_params(
+    d: &Decl,
+    kind_name: &str,
+    kind: &dyn Stage,
+    given: &[(String, Yaml, Loc)],
+    settings: &[Setting],
+) -> Result<(), ConfigError> {
+    let check = |path: &str, loc: Loc| match kind.moved_param(path) {
+        Some(to) => Err(d.err(
+            loc,
+            None,
+            stages::params_doc::moved_message(d.name, kind_name, path, &to),
+        )),
+        None => Ok(()),
+    };
+    for (key, v, l) in given {
+        for path in leaf_paths(key, v) {
+            check(&path, nested_loc(d, l, &path))?;
+        }
+    }
+    for s in settings {
+        for path in leaf_paths(&s.path.join("."), &s.value) {
+            check(&path, s.loc.clone())?;
+        }
+    }
+    Ok(())
+}
+
+/// The dotted paths of the values inside `v` (`path` itself when it is not a mapping, or an
+/// empty one).
+fn leaf_paths(path: &str, v: &Yaml) -> Vec<String> {
+    match v {
+        Yaml::Mapping(m) if !m.is_empty() => m
+            .iter()
+            .flat_map(|(k, x)| leaf_paths(&format!("{path}.{}", k.as_str().unwrap_or("?")), x))
+            .collect(),
+        Yaml::Tagged(t) => leaf_paths(path, &t.value),
+        _ => vec![path.to_string()],
+    }
 }
 
 /// Where the field `path` (`train.lr`, `origin[0]`) inside a param stands: the field's own key

@@ -61,7 +61,6 @@ fn bench_fused(steps: usize) {
         let field = FieldConfig::default();
         let config = TrainConfig {
             field: field.clone(),
-            rays_per_batch: rays,
             ..Default::default()
         };
         let spec = FieldSpec {
@@ -137,7 +136,6 @@ fn main() {
                 }
                 let config = TrainConfig {
                     field: field.clone(),
-                    rays_per_batch: rays,
                     ..Default::default()
                 };
                 let spec = FieldSpec {

@@ -17,7 +17,7 @@ use crate::{
 };
 
 /// Parameters of the `intersect` stage.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct IntersectParams {
     /// Maximum number of primitive intervals kept per ray (the paper's 10); 1..=255.
@@ -26,9 +26,9 @@ pub struct IntersectParams {
     pub sky_interval: f64,
     /// Maximum ray length in metres considered; intervals are clipped to it.
     pub far: f64,
-    /// Cameras to plan, by number or name (0 or image_00 = left, 1 = right, 2 and 3 the side
-    /// fisheye cameras).
+    /// Cameras planned (`image_00` .. `image_03`, or 0 .. 3); empty: every camera of the scene.
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
     pub cameras: Vec<u8>,
 }
 
@@ -38,7 +38,7 @@ impl Default for IntersectParams {
             k: 10,
             sky_interval: 50.0,
             far: 200.0,
-            cameras: vec![0, 1],
+            cameras: Vec::new(),
         }
     }
 }

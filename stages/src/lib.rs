@@ -22,6 +22,7 @@ pub mod kinds;
 pub mod labels;
 pub mod metrics;
 pub mod model;
+pub mod params_doc;
 pub mod pngio;
 pub mod report;
 pub mod rng;

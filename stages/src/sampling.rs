@@ -13,83 +13,22 @@
 //! placement (but not for the fixed fields).
 
 mod images;
+mod params;
 mod rays;
+mod train;
 
 pub use images::{train_rays, ImageRays, JitteredRays, SparseDepth, Targets, TrainImage};
+pub use params::{SamplingMode, SamplingParams};
 use rayon::prelude::*;
 pub use rays::{
     pixel_ray, Intervals, PlannedImage, PrimInfo, RaySet, RayTargets, Rays, SceneRay, StoredRays,
     NONE,
 };
-
-use serde::{Deserialize, Serialize};
+pub use train::{JitterLabels, LateJitter, TrainSampling};
 
 use crate::intervals::RayPlan;
 use crate::rng::SplitMix64;
-use crate::stage::{Result, StageError};
-
-/// How samples are placed along a ray.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SamplingMode {
-    /// Only inside the primitives a ray crosses, plus the sky interval (the method).
-    Primitives,
-    /// Evenly over [near, far] (ablation: "uniform sampling").
-    Uniform,
-}
-
-/// Sampling parameters.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct SamplingParams {
-    pub mode: SamplingMode,
-    /// Samples per ray inside primitives (an equal share per interval the ray crosses).
-    pub samples: usize,
-    /// Samples in the sky interval (when the ray has one).
-    pub sky_samples: usize,
-    /// Uniform mode: near and far distance, metres.
-    pub near: f32,
-    pub far: f32,
-}
-
-impl Default for SamplingParams {
-    fn default() -> Self {
-        Self {
-            mode: SamplingMode::Primitives,
-            samples: 28,
-            sky_samples: 4,
-            near: 0.5,
-            far: 80.0,
-        }
-    }
-}
-
-impl SamplingParams {
-    pub fn validate(&self) -> Result<()> {
-        if self.samples == 0 || self.samples > 512 {
-            return Err(StageError::Params("`samples` must be 1..=512".into()));
-        }
-        if self.sky_samples > 64 {
-            return Err(StageError::Params(
-                "`sky_samples` must be at most 64".into(),
-            ));
-        }
-        if !(self.near >= 0.0 && self.far > self.near) {
-            return Err(StageError::Params(
-                "`near` and `far` need 0 <= near < far".into(),
-            ));
-        }
-        Ok(())
-    }
-
-    /// Samples per ray in a batch.
-    pub fn per_ray(&self) -> usize {
-        match self.mode {
-            SamplingMode::Primitives => self.samples + self.sky_samples,
-            SamplingMode::Uniform => self.samples,
-        }
-    }
-}
+use crate::stage::Result;
 
 /// A batch of rays with their samples, flat row-major, ready for the fields.
 ///

@@ -6,10 +6,12 @@
 use std::{collections::BTreeMap, path::Path, path::PathBuf};
 
 use arrow::record_batch::RecordBatch;
+use schemars::JsonSchema;
 use serde::{de::DeserializeOwned, Serialize};
 use serde_json::Value;
 
 pub use crate::error::{Result, StageError};
+pub use crate::params_doc::ParamDoc;
 use crate::stream::Sinks;
 pub use crate::stream::{Table, TableSet, TableWriter, Tables};
 
@@ -138,6 +140,14 @@ pub trait Stage: Send + Sync {
     fn outputs(&self) -> &'static [&'static str];
     /// Default parameters as a JSON object.
     fn default_params(&self) -> Value;
+    /// Every parameter with its type, default and doc, in the order the params struct declares
+    /// them ([`crate::params_doc`]).
+    fn param_docs(&self) -> Vec<ParamDoc>;
+    /// Where a parameter of an earlier layout went: the new key (or a hint) for the old dotted
+    /// `path` (`train.lr` -> `optimiser.lr`), `None` when `path` was never moved.
+    fn moved_param(&self, path: &str) -> Option<String>;
+    /// The table [`Stage::moved_param`] reads: `(old dotted path, new path [(note)] or (note))`.
+    fn moved_params(&self) -> &'static [(&'static str, &'static str)];
     /// Checks full parameters (defaults filled in) and returns their canonical form.
     fn canonical_params(&self, params: &Value) -> Result<Value>;
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
@@ -158,7 +168,7 @@ pub trait Stage: Send + Sync {
 /// A stage kind with typed parameters. Params are a serde struct with `#[serde(default,
 /// deny_unknown_fields)]`; its `Default` gives the defaults the cache key fills in.
 pub trait TypedStage: Send + Sync {
-    type Params: Serialize + DeserializeOwned + Default;
+    type Params: Serialize + DeserializeOwned + Default + JsonSchema;
     const KIND: &'static str;
     const VERSION: u32;
     const DESCRIPTION: &'static str;
@@ -168,6 +178,9 @@ pub trait TypedStage: Send + Sync {
     const SCORES: Option<&'static ScoreSpec> = None;
     /// See [`Stage::budget_param`].
     const BUDGET_PARAM: Option<&'static str> = None;
+    /// Parameters that moved: `(old dotted path, new path or hint)`; an old path matches itself
+    /// and every path below it, the longest match wins (see [`Stage::moved_param`]).
+    const MOVED: &'static [(&'static str, &'static str)] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -225,6 +238,15 @@ impl<T: TypedStage> Stage for T {
     }
     fn default_params(&self) -> Value {
         serde_json::to_value(T::Params::default()).expect("params serialise to JSON")
+    }
+    fn param_docs(&self) -> Vec<ParamDoc> {
+        crate::params_doc::docs::<T::Params>()
+    }
+    fn moved_param(&self, path: &str) -> Option<String> {
+        crate::params_doc::moved(T::MOVED, path)
+    }
+    fn moved_params(&self) -> &'static [(&'static str, &'static str)] {
+        T::MOVED
     }
     fn canonical_params(&self, params: &Value) -> Result<Value> {
         let p: T::Params = typed_params(params)?;

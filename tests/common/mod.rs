@@ -27,7 +27,7 @@ stages:
     uses: train
     inputs: {scene: scene, rays: rays}
     params:
-      train: {iterations: 40, rays_per_batch: 256}
+      schedule: {iterations: 40, rays_per_batch: 256}
   render:
     uses: render
     inputs: {scene: scene, rays: rays, train: train}

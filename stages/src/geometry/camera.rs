@@ -115,6 +115,19 @@ impl Camera {
     }
 }
 
+/// # camera
+///
+/// How a `cameras` parameter names one camera, for its documented type (`pipe kinds`): a
+/// KITTI-360 name (its number, 0 .. 3, is read too; see [`camera_ids`]).
+#[derive(schemars::JsonSchema)]
+#[allow(dead_code, non_camel_case_types)]
+pub enum CameraName {
+    image_00,
+    image_01,
+    image_02,
+    image_03,
+}
+
 /// A `cameras` parameter as camera numbers, from numbers (`0`) or KITTI-360 names
 /// (`image_00`); for `#[serde(deserialize_with)]`.
 pub fn camera_ids<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {

@@ -19,7 +19,7 @@ use crate::{
 /// The scene name of the mean rows.
 pub const MEAN: &str = "mean";
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct AggregateParams {
     /// Metrics shown as columns of the exported Markdown tables (all stay in the table).

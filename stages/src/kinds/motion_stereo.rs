@@ -196,7 +196,11 @@ mod tests {
     fn street(frames: u32, fisheye: bool) -> (SceneParams, Tables) {
         let sp = SceneParams {
             frames,
-            fisheye,
+            cameras: if fisheye {
+                vec![0, 1, 2, 3]
+            } else {
+                vec![0, 1]
+            },
             ..Default::default()
         };
         let scene = to_tables(&sp, generate(&sp, &crate::NoProgress).unwrap()).unwrap();

@@ -25,42 +25,42 @@ use crate::stage::{
 };
 use crate::{pngio, tables};
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct RenderParams {
     /// Rays evaluated per network call.
     pub chunk: usize,
     /// Samples inside primitives per ray; 0 = as in training.
     pub samples: usize,
-    /// Inference engine: empty = the fused CPU path for grid fields (else the default burn
-    /// backend); or a burn backend name (flex, ndarray, wgpu, cuda) or `fused`.
+    /// Inference engine: `fused`, a burn backend, or empty for where training ran.
+    /// Empty: the GPU the field was trained on, else the fused CPU path for grid fields (else
+    /// the default burn backend). Burn backends: flex, ndarray, wgpu, cuda.
     pub backend: EngineChoice,
-    /// Poses that are not in the scene, rendered too: rows with camera id
-    /// [`NOVEL_CAMERA_BASE`] + their index (files `<seq>_<frame>_10.png`, ...). Their rays are
+    /// Poses that are not in the scene, rendered too (camera ids 10, 11, ...).
+    /// Their rows have camera id [`NOVEL_CAMERA_BASE`] + their index (files
+    /// `<seq>_<frame>_10.png`, ...). Their rays are
     /// intersected with the primitives here, with the `intersect` kind's default params.
     pub novel_views: Vec<NovelView>,
-    /// Render only the images of these frames (a preview, a timing); empty: every image the
-    /// `rays` stage planned.
+    /// Render only the images of these frames; empty: every image the `rays` stage planned.
+    /// For a preview or a timing.
     pub frames: Vec<u32>,
     /// Which images get a rendered colour map: `novel_views` (default), `all` or `none`. Colour
     /// checks the fit and labels nothing; it costs ~15 % of rendering. Images without one have
     /// an empty `rgb`.
     pub colour: Colour,
-    /// Render a coarse grid of pixels first (every `coarse_stride`-th pixel of every
-    /// `coarse_stride`-th row), then, halving the spacing, only the pixels where the coarser grid
-    /// disagrees (labels, or the primitives crossed); the others take their labels and
-    /// interpolate depth, confidence and colour. `false` renders every pixel.
-    pub adaptive: bool,
-    /// Spacing of that first grid: a power of two from 1 to 16. On full-size street images 4
-    /// renders 2.4x faster than every pixel (2: 2.0x) and 0.1 % of the labels differ.
+    /// Spacing (1, 2, 4, 8, 16) of the pixel grid rendered first; 1 renders every pixel.
+    /// Halving the spacing, only the pixels where the coarser grid disagrees (labels, or the
+    /// primitives crossed) are rendered; the others take their labels and interpolate depth,
+    /// confidence and colour. On full-size street images 4 renders 2.4x faster than every pixel,
+    /// with 0.1 % of the labels differing.
     pub coarse_stride: u32,
-    /// The depth map: `expected` (sum w t / sum w, default) or `median` (where the accumulated
-    /// weight reaches 0.5); both only where the opacity reaches 0.5.
+    /// The depth map: `expected` (sum w t / sum w) or `median` (where the weight reaches 0.5).
+    /// Both only where the opacity reaches 0.5.
     pub depth: DepthKind,
 }
 
 /// Which images [`RenderParams::colour`] renders in colour.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Colour {
     All,
@@ -73,7 +73,7 @@ pub const NOVEL_CAMERA_BASE: u8 = 10;
 
 /// An existing camera of the scene, moved in its own frame (x right, y down, z forward); its
 /// intrinsics and image size are kept.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct NovelView {
     /// Frame and camera id (0 left, 1 right) of the camera it starts from.
@@ -96,7 +96,6 @@ impl Default for RenderParams {
             novel_views: Vec::new(),
             frames: Vec::new(),
             colour: Colour::NovelViews,
-            adaptive: true,
             coarse_stride: 4,
             depth: DepthKind::Expected,
         }
@@ -219,9 +218,12 @@ fn plan_params(plan: &Table) -> Result<IntersectParams> {
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
-    const VERSION: u32 = 9;
+    // 10: `adaptive: false` is `coarse_stride: 1` (one knob); the same maps.
+    const VERSION: u32 = 10;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
+    const MOVED: &'static [(&'static str, &'static str)] =
+        &[("adaptive", "coarse_stride (1 renders every pixel)")];
     const INPUTS: &'static [InputSlot] = &[
         InputSlot {
             name: "scene",
@@ -304,7 +306,6 @@ impl TypedStage for Render {
                 rgb,
                 semantics: true,
             },
-            adaptive: p.adaptive,
             coarse_stride: p.coarse_stride,
             depth: p.depth,
         };

@@ -21,7 +21,7 @@ use crate::stage::{
 };
 use crate::{labels, tables};
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct ReportParams {
     /// Title of the page.

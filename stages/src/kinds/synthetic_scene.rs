@@ -15,11 +15,16 @@ pub struct SyntheticScene;
 impl TypedStage for SyntheticScene {
     type Params = SceneParams;
     const KIND: &'static str = "synthetic_scene";
-    const VERSION: u32 = 2;
+    // 3: `cameras` lists the cameras rendered (was `fisheye: true`); the same tables.
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "synthetic urban street: stereo images, GT labels and depth, 3D bounding primitives, \
          noisy pseudo labels, stereo and LiDAR depth";
     const INPUTS: &'static [InputSlot] = &[];
+    const MOVED: &'static [(&'static str, &'static str)] = &[(
+        "fisheye",
+        "cameras (list the fisheye cameras: [image_00, image_01, image_02, image_03])",
+    )];
     const OUTPUTS: &'static [&'static str] = &[
         "scene_info",
         "cameras",

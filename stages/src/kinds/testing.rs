@@ -11,7 +11,7 @@ use crate::{
 };
 
 /// Behaviour switches shared by the test kinds.
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Knobs {
     /// Milliseconds to sleep inside the stage body (in 10 ms steps, reporting progress).
@@ -34,7 +34,7 @@ impl Knobs {
     }
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct SourceParams {
     /// First value of the sequence.
@@ -84,7 +84,7 @@ impl TypedStage for TestSource {
     }
 }
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MapParams {
     /// Every number is multiplied by this.
@@ -164,7 +164,7 @@ impl TypedStage for TestMap {
     }
 }
 
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct FileParams {
     /// A text file of numbers, one per line.

@@ -10,45 +10,78 @@ use std::sync::Arc;
 use arrow::array::{ArrayRef, Float32Array};
 use arrow::datatypes::{Float32Type, Float64Type, UInt32Type};
 use arrow::record_batch::RecordBatch;
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::DVec3;
 use crate::model::TrainError;
 use crate::model::{
-    fit, weights, BatchOrder, Engine, FieldSpec, JitterLabels, LossTerm, LossTerms, ModelInfo,
-    RayBatch, TrainConfig,
+    fit, weights, BatchOrder, Engine, FieldConfig, FieldSpec, LossTerm, LossTerms, Losses,
+    ModelInfo, Optimiser, RayBatch, Schedule, TrainConfig,
 };
 use crate::rng::{mix, SplitMix64};
-use crate::sampling::{self, ImageRays, JitteredRays, PrimInfo, SamplingParams};
+use crate::sampling::{
+    self, ImageRays, JitterLabels, JitteredRays, PrimInfo, SamplingParams, TrainSampling,
+};
 use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
 use crate::{labels, tables};
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+/// Parameters of the `train` stage, grouped by what they configure.
+#[derive(Debug, Clone, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainParams {
-    /// Optimiser, losses and field architecture.
-    pub train: TrainConfig,
-    /// Where samples go along each ray.
-    pub sampling: SamplingParams,
-    /// Cameras whose rays are trained on (0 = left, 1 = right, 2 and 3 the fisheye cameras;
-    /// images without pseudo labels train colour only).
+    /// Cameras trained on (`image_00` .. `image_03`, or 0 .. 3); empty: every camera of `rays`.
+    /// The `rays` stage plans the scene's cameras unless it narrows them. Images without pseudo
+    /// labels train colour only.
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
     pub cameras: Vec<u8>,
-    /// The engine: `fused` (default: hand-written CPU kernels of the grid field), or a burn
-    /// backend: flex, ndarray, wgpu or cuda (the latter need their cargo feature).
+    /// The engine: `fused` (CPU kernels of the grid field) or a burn backend.
+    /// The burn backends are flex, ndarray, wgpu and cuda (the last three need their cargo
+    /// feature). Some settings are one engine's alone; the others refuse them by name.
     pub backend: Engine,
-    /// Classes (KITTI-360 names) whose primitives carry the stereo depth: L_depth only on rays
-    /// that cross a primitive of one of them. Empty (the default, the paper's form): every ray
-    /// with a stereo depth. The published implementation keeps a per-scene list
-    /// (`depth_object`, e.g. parking, wall, gate), which leaves most of the geometry to the
-    /// photometric and semantic terms.
-    pub depth_classes: Vec<String>,
+    /// Seed of the initial weights, the ray order and the jitter.
+    pub seed: u64,
+    /// How long training runs.
+    pub schedule: Schedule,
+    /// The radiance field with its dual semantic heads.
+    pub field: FieldConfig,
+    /// What each training ray samples, and where in its pixel it goes.
+    pub sampling: TrainSampling,
+    /// The loss terms' weights and settings.
+    pub losses: Losses,
+    /// Adam and its learning rate.
+    pub optimiser: Optimiser,
+    /// Switches for research only (the paper's ablations): each makes the labels worse.
+    pub experimental: Experimental,
+}
+
+/// Switches for research only: the paper's ablations (docs/experiments/ablation.md).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct Experimental {
+    /// Apply the ray mask u(r) to L_learned2D; false: every labelled ray counts (the ablation
+    /// "w/o u(r)").
+    pub ray_mask: bool,
+    /// `[near, far]` metres to sample rays evenly over (the ablation); null: in the primitives.
+    /// The ablation "uniform sampling" places samples without regard to the primitives.
+    pub uniform_sampling: Option<[f32; 2]>,
+}
+
+impl Default for Experimental {
+    fn default() -> Self {
+        Self {
+            ray_mask: true,
+            uniform_sampling: None,
+        }
+    }
 }
 
 impl TrainParams {
-    /// Label ids of `depth_classes`; an unknown name is an error naming it.
+    /// Label ids of `losses.depth_classes`; an unknown name is an error naming it.
     pub fn depth_class_ids(&self) -> Result<Vec<u8>> {
-        self.depth_classes
+        self.losses
+            .depth_classes
             .iter()
             .map(|name| {
                 labels::by_name(name)
@@ -56,37 +89,100 @@ impl TrainParams {
                     .map(|l| l.id)
                     .ok_or_else(|| {
                         StageError::Params(format!(
-                            "`depth_classes`: `{name}` is not a KITTI-360 class name that \
+                            "`losses.depth_classes`: `{name}` is not a KITTI-360 class name that \
                              primitives can have (e.g. road, parking, wall, gate, building)"
                         ))
                     })
             })
             .collect()
     }
+
+    /// What the engine's trainer is given.
+    pub fn model_config(&self) -> TrainConfig {
+        TrainConfig {
+            field: self.field.clone(),
+            losses: self.losses.clone(),
+            optimiser: self.optimiser.clone(),
+            iterations: self.schedule.iterations,
+            seed: self.seed,
+            ray_mask: self.experimental.ray_mask,
+        }
+    }
+
+    /// Where samples go along each ray, as stored beside the weights.
+    pub fn sampling_params(&self) -> SamplingParams {
+        self.sampling.params(self.experimental.uniform_sampling)
+    }
 }
 
 impl Default for TrainParams {
     fn default() -> Self {
         Self {
-            train: TrainConfig::default(),
-            sampling: SamplingParams::default(),
-            cameras: vec![0, 1],
+            cameras: Vec::new(),
             backend: Engine::Fused,
-            depth_classes: Vec::new(),
+            seed: 0,
+            schedule: Schedule::default(),
+            field: FieldConfig::default(),
+            sampling: TrainSampling::default(),
+            losses: Losses::default(),
+            optimiser: Optimiser::default(),
+            experimental: Experimental::default(),
         }
     }
 }
 
+/// Where the parameters of the layout before December 2026 went (`train.lr` ->
+/// `optimiser.lr`); the runner names the new key when an old one is given.
+const MOVED: &[(&str, &str)] = &[
+    ("train.iterations", "schedule.iterations"),
+    ("train.rays_per_batch", "schedule.rays_per_batch"),
+    ("train.seed", "seed"),
+    ("train.field_margin", "field.margin"),
+    ("train.field", "field"),
+    ("train.losses", "losses"),
+    ("train.label_eps", "losses.label_eps"),
+    ("train.sigma_threshold", "losses.sigma_threshold"),
+    ("train.sky_prior_colour", "losses.sky_prior_colour"),
+    ("train.exposure", "losses.exposure"),
+    ("train.ray_mask", "experimental.ray_mask"),
+    ("train.lr", "optimiser.lr"),
+    ("train.lr_final_factor", "optimiser.lr_final_factor"),
+    ("train.grad_clip_norm", "optimiser.grad_clip_norm"),
+    ("train.adam_beta1", "optimiser.adam_beta1"),
+    ("train.adam_beta2", "optimiser.adam_beta2"),
+    ("train.adam_epsilon", "optimiser.adam_epsilon"),
+    ("train.pixel_jitter", "sampling.pixel_jitter"),
+    ("train.jitter_labels", "sampling.jitter_labels"),
+    ("train.late_jitter", "sampling.late_jitter"),
+    (
+        "train",
+        "(into the groups schedule, field, sampling, losses, optimiser and experimental)",
+    ),
+    ("depth_classes", "losses.depth_classes"),
+    (
+        "sampling.mode",
+        "experimental.uniform_sampling ([near, far] metres, or null for the primitives)",
+    ),
+    (
+        "sampling.near",
+        "experimental.uniform_sampling ([near, far] metres)",
+    ),
+    (
+        "sampling.far",
+        "experimental.uniform_sampling ([near, far] metres)",
+    ),
+];
+
 pub struct Train;
 
 /// The field spec of a scene: its classes, and as its box the bounds of its primitives
-/// (padded by 1 m) clipped to `config.field_margin` around the centres of `cameras`.
+/// (padded by 1 m) clipped to `config.field.margin` around the centres of `cameras`.
 pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> FieldSpec {
     let pad = 1.0;
     let mut lo = prims.bounds_min.map(|v| v - pad);
     let mut hi = prims.bounds_max.map(|v| v + pad);
-    if config.field_margin > 0.0 && !cameras.is_empty() {
-        let m = f64::from(config.field_margin);
+    if config.field.margin > 0.0 && !cameras.is_empty() {
+        let m = f64::from(config.field.margin);
         for a in 0..3 {
             let c_lo = cameras.iter().map(|c| c[a]).fold(f64::INFINITY, f64::min) - m;
             let c_hi = cameras
@@ -110,11 +206,12 @@ pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> Fi
     }
 }
 
-/// Rays of the selected cameras that cross a primitive: the ones training draws from.
+/// Rays of the selected cameras (empty: every camera) that cross a primitive: the ones
+/// training draws from.
 fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
     rays.images
         .iter()
-        .filter(|im| cameras.contains(&im.camera))
+        .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
         .flat_map(|im| {
             im.hits
                 .iter()
@@ -128,10 +225,12 @@ fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
 impl TypedStage for Train {
     type Params = TrainParams;
     const KIND: &'static str = "train";
+    // 16: parameters grouped (schedule, field, sampling, losses, optimiser, experimental) and
+    // `cameras` defaulting to the plan's; the same weights for the same settings.
     // 15: the train log has a `loss_sky_prior` column (null unless `losses.sky_prior` > 0).
     // 14: the train log has no wall-clock column (the same seed and config give the same bytes;
     // the runner times the stage); `late_jitter` (on by default) changes runs past 8 passes.
-    const VERSION: u32 = 15;
+    const VERSION: u32 = 16;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[
@@ -161,18 +260,22 @@ impl TypedStage for Train {
         },
     ];
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
-    const BUDGET_PARAM: Option<&'static str> = Some("train.iterations");
+    const BUDGET_PARAM: Option<&'static str> = Some("schedule.iterations");
+    const MOVED: &'static [(&'static str, &'static str)] = MOVED;
 
     fn validate(p: &TrainParams) -> Result<()> {
-        p.train.validate()?;
+        p.schedule.validate()?;
+        let config = p.model_config();
+        config.validate()?;
         p.sampling.validate()?;
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+        p.sampling_params().validate()?;
+        if p.cameras.iter().any(|&c| c > 3) {
             return Err(StageError::Params(
                 "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
             ));
         }
-        p.backend.supports(&p.train.field)?;
-        p.backend.supports_train(&p.train)?;
+        p.backend.supports(&p.field)?;
+        p.backend.supports_train(&config)?;
         p.depth_class_ids()?;
         Ok(())
     }
@@ -185,8 +288,9 @@ impl TypedStage for Train {
         {
             // L_depth would silently be off.
             return Err(StageError::Params(format!(
-                "`depth_classes`: no primitive of the scene has one of [{}] (its classes: {})",
-                p.depth_classes.join(", "),
+                "`losses.depth_classes`: no primitive of the scene has one of [{}] (its classes: \
+                 {})",
+                p.losses.depth_classes.join(", "),
                 rays.prims
                     .classes
                     .iter()
@@ -200,24 +304,27 @@ impl TypedStage for Train {
         if candidates.is_empty() {
             return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
         }
+        let config = p.model_config();
+        let plan = p.sampling_params();
         let centres: Vec<DVec3> = rays.images.iter().map(|im| im.cam.centre()).collect();
-        let spec = spec_for(&rays.prims, &centres, &p.train);
-        let mut trainer = p.backend.trainer(&p.train, spec.clone())?;
-        let iters = p.train.iterations;
-        let batch = p.train.rays_per_batch.min(candidates.len());
+        let spec = spec_for(&rays.prims, &centres, &config);
+        let mut trainer = p.backend.trainer(&config, spec.clone())?;
+        let iters = p.schedule.iterations;
+        let batch = p.schedule.rays_per_batch.min(candidates.len());
         let start = std::time::Instant::now();
         let mut log = LogColumns::default();
         let training_rays = candidates.len() as f64;
-        let mut order = BatchOrder::over(p.train.seed, candidates, batch);
+        let mut order = BatchOrder::over(p.seed, candidates, batch);
         // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from a
         // SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share all
         // but one ray: training saw only ~iterations + batch distinct rays.)
         let next_batch = |it: usize| {
             let ids: Vec<u32> = order.batch(it).to_vec();
-            let jitter =
-                SplitMix64::new(p.train.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
-                    .next_u64();
-            let (width, labels) = p.train.jitter_at(it as f64 * batch as f64 / training_rays);
+            let jitter = SplitMix64::new(p.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+                .next_u64();
+            let (width, labels) = p
+                .sampling
+                .jitter_at(it as f64 * batch as f64 / training_rays);
             let batch = if width > 0.0 {
                 let jittered = JitteredRays {
                     rays: &rays,
@@ -225,14 +332,14 @@ impl TypedStage for Train {
                     width: width as f64,
                     bilinear_labels: labels == JitterLabels::Bilinear,
                 };
-                sampling::sample_batch(&jittered, &ids, &p.sampling, Some(jitter))
+                sampling::sample_batch(&jittered, &ids, &plan, Some(jitter))
             } else {
-                sampling::sample_batch(&rays, &ids, &p.sampling, Some(jitter))
+                sampling::sample_batch(&rays, &ids, &plan, Some(jitter))
             };
             batch
                 .map(|b| {
                     let mut batch = RayBatch::from_samples(&b);
-                    if p.train.exposure {
+                    if p.losses.exposure {
                         batch.targets.image = b
                             .ray_ids
                             .iter()
@@ -258,7 +365,7 @@ impl TypedStage for Train {
         })?;
         let info = ModelInfo {
             spec,
-            sampling: p.sampling.clone(),
+            sampling: plan.clone(),
             classes: rays.prims.classes.clone(),
         };
         Ok(Tables::from([
@@ -314,7 +421,13 @@ fn nothing_crossed(inputs: &Inputs, cameras: &[u8]) -> Result<String> {
     let prims = crate::geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
     let used: Vec<_> = rows
         .iter()
-        .filter(|r| cameras.contains(&r.camera))
+        .filter(|r| cameras.is_empty() || cameras.contains(&r.camera))
+        .collect();
+    let cameras: Vec<u8> = used
+        .iter()
+        .map(|r| r.camera)
+        .collect::<std::collections::BTreeSet<u8>>()
+        .into_iter()
         .collect();
     let frames: std::collections::BTreeSet<u32> = used.iter().map(|r| r.frame).collect();
     let nearest = used
@@ -357,15 +470,13 @@ mod tests {
         let p = prims([-450.0, -450.0, -1.5], [500.0, 450.0, 18.5]);
         let cams = [DVec3::new(0.0, 0.0, 1.6), DVec3::new(20.0, 0.0, 1.6)];
         let config = TrainConfig::default();
-        assert_eq!(config.field_margin, 50.0);
+        assert_eq!(config.field.margin, 50.0);
         let s = spec_for(&p, &cams, &config);
         assert_eq!(s.aabb_min, [-50.0, -50.0, -2.5]);
         assert_eq!(s.aabb_max, [70.0, 50.0, 19.5]);
         // 0 keeps the primitives' (padded) bounds, as do scenes with no camera.
-        let whole = TrainConfig {
-            field_margin: 0.0,
-            ..config.clone()
-        };
+        let mut whole = config.clone();
+        whole.field.margin = 0.0;
         let s = spec_for(&p, &cams, &whole);
         assert_eq!(s.aabb_min, [-451.0, -451.0, -2.5]);
         assert_eq!(s.aabb_max, [501.0, 451.0, 19.5]);
@@ -376,41 +487,25 @@ mod tests {
         assert_eq!((s.aabb_min[0], s.aabb_max[0]), (199.0, 211.0));
         assert_eq!((s.aabb_min[1], s.aabb_max[1]), (-6.0, 6.0));
         s.validate().unwrap();
-        // A negative or NaN margin is refused by name.
-        for bad in [-1.0, f32::NAN] {
-            let c = TrainConfig {
-                field_margin: bad,
-                ..config.clone()
-            };
-            assert!(c
-                .validate()
-                .unwrap_err()
-                .to_string()
-                .contains("field_margin"));
-        }
     }
 
     /// `depth_classes` resolves names and refuses unknown ones by name.
     #[test]
     fn depth_classes_are_named_and_checked() {
-        let p = TrainParams {
-            depth_classes: vec!["parking".into(), "wall".into(), "gate".into()],
-            ..TrainParams::default()
-        };
+        let mut p = TrainParams::default();
+        p.losses.depth_classes = vec!["parking".into(), "wall".into(), "gate".into()];
         assert_eq!(
             p.depth_class_ids().unwrap(),
             [labels::PARKING, labels::WALL, labels::GATE]
         );
         Train::validate(&p).unwrap();
         let json = serde_json::to_value(&p).unwrap();
-        assert_eq!(json["depth_classes"][2], "gate");
+        assert_eq!(json["losses"]["depth_classes"][2], "gate");
         for bad in ["parkng", "sky"] {
-            let q = TrainParams {
-                depth_classes: vec![bad.into()],
-                ..TrainParams::default()
-            };
+            let mut q = TrainParams::default();
+            q.losses.depth_classes = vec![bad.into()];
             let e = Train::validate(&q).unwrap_err().to_string();
-            assert!(e.contains("depth_classes") && e.contains(bad), "{e}");
+            assert!(e.contains("losses.depth_classes") && e.contains(bad), "{e}");
         }
     }
 }

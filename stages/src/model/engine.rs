@@ -123,9 +123,9 @@ impl Engine {
     /// Training options this engine cannot run: per-image exposure on burn.
     pub fn supports_train(self, config: &TrainConfig) -> Result<(), ModelError> {
         match self {
-            Engine::Burn(_) if config.exposure => Err(ModelError::Unsupported {
+            Engine::Burn(_) if config.losses.exposure => Err(ModelError::Unsupported {
                 engine: self.name(),
-                what: "has no per-image exposure (`train.exposure`); use backend fused".into(),
+                what: "has no per-image exposure (`losses.exposure`); use backend fused".into(),
             }),
             _ => Ok(()),
         }
@@ -214,6 +214,29 @@ impl<'de> Deserialize<'de> for Engine {
     }
 }
 
+/// Every engine name, whether this build has it or not (the documented type; `pipe kinds`).
+const ENGINE_NAMES: [&str; 5] = ["fused", "flex", "ndarray", "wgpu", "cuda"];
+
+impl schemars::JsonSchema for Engine {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "Engine".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({ "type": "string", "enum": ENGINE_NAMES })
+    }
+}
+
+impl schemars::JsonSchema for EngineChoice {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "EngineChoice".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        let mut names = vec![""];
+        names.extend(ENGINE_NAMES);
+        schemars::json_schema!({ "type": "string", "enum": names })
+    }
+}
+
 /// An engine, or the best one for the field ([`Engine::for_field`]), written `""`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct EngineChoice(pub Option<Engine>);
@@ -291,10 +314,8 @@ mod tests {
 
     #[test]
     fn per_image_exposure_is_the_fused_engine_s_alone() {
-        let config = TrainConfig {
-            exposure: true,
-            ..Default::default()
-        };
+        let mut config = TrainConfig::default();
+        config.losses.exposure = true;
         assert!(Engine::Fused.supports_train(&config).is_ok());
         let err = Engine::Burn(Backend::default())
             .supports_train(&config)
@@ -302,16 +323,19 @@ mod tests {
             .to_string();
         assert!(
             err.contains(&format!("`backend: {}`", Backend::default().name()))
-                && err.contains("`train.exposure`"),
+                && err.contains("`losses.exposure`"),
             "{err}"
         );
         assert!(Engine::Burn(Backend::default())
             .supports_train(&TrainConfig::default())
             .is_ok());
-        // Off, it is not written: the canonical parameters (cache keys) stay as they were.
-        let json = serde_json::to_value(TrainConfig::default()).unwrap();
-        assert!(json.get("exposure").is_none(), "{json}");
-        assert_eq!(serde_json::to_value(&config).unwrap()["exposure"], true);
+    }
+
+    #[test]
+    fn the_documented_engine_names_are_every_engine() {
+        let mut names: Vec<&str> = vec!["fused"];
+        names.extend(super::super::burn::Backend::ALL.iter().map(|b| b.name()));
+        assert_eq!(names, ENGINE_NAMES);
     }
 
     #[test]

@@ -1,11 +1,11 @@
-//! What training reports: the loss terms of Panoptic NeRF by name, the losses of one step, and
-//! why a step failed. The terms themselves are defined once, on tensors, in
-//! [`crate::model::burn::loss`] (differentiable, gradient-checked); the fused engine computes
-//! the same formulas by hand and is held equal to them by tests.
+//! What training reports: the loss terms of Panoptic NeRF by name and the losses of one step
+//! (their settings: [`crate::model::config::Losses`]). The terms themselves are defined once, on
+//! tensors, in [`crate::model::burn::loss`] (differentiable, gradient-checked); the fused engine
+//! computes the same formulas by hand and is held equal to them by tests.
 
-/// The smallest `label_eps` of the training config, the paper's `-log p` in effect (the
-/// gradient is at most `1 / PROB_EPS`, and `-log(PROB_EPS)` ~ 13.8 bounds the loss of an
-/// impossible label); the default `label_eps` is 0.3 (see `TrainConfig::label_eps`).
+/// The smallest `losses.label_eps`, the paper's `-log p` in effect (the gradient is at most
+/// `1 / PROB_EPS`, and `-log(PROB_EPS)` ~ 13.8 bounds the loss of an impossible label); the
+/// default is 0.3 (see [`crate::model::config::Losses::label_eps`]).
 pub const PROB_EPS: f32 = 1e-6;
 
 /// The loss terms, for names in errors and logs.

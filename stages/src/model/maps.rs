@@ -24,17 +24,17 @@ pub struct Renderer<'a> {
     pub chunk: usize,
     /// The heads evaluated (without colour the colour map is the sky colour).
     pub heads: Heads,
-    /// Render a coarse grid of pixels first and the rest only where those disagree (see
-    /// [`render_image`]); `false` renders every pixel.
-    pub adaptive: bool,
-    /// Spacing of that first grid (a power of two; 1 renders every pixel).
+    /// Render a coarse grid of pixels of this spacing first and the rest only where those
+    /// disagree (see [`render_image`]); a power of two, 1 renders every pixel.
     pub coarse_stride: u32,
     /// Which depth a ray's depth map shows.
     pub depth: DepthKind,
 }
 
 /// The depth of a rendered ray, written only where the opacity reaches 0.5 (else 0: sky).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum DepthKind {
     /// Expected termination distance over the ray's non-sky weight, sum w t / sum w (the
@@ -91,8 +91,8 @@ pub fn lens_mask(cam: &Camera) -> Vec<bool> {
 /// Renders one image: its rays, with the plan of each pixel, the lens mask of its camera
 /// ([`lens_mask`]), and its frame and camera id. Returns the maps and the sky colour used.
 ///
-/// With [`Renderer::adaptive`], only the pixels of a grid of spacing
-/// [`Renderer::coarse_stride`] (and the last row and column) are rendered first; then, halving
+/// Only the pixels of a grid of spacing [`Renderer::coarse_stride`] (and the last row and
+/// column) are rendered first; then, halving
 /// the spacing until it is 1, each pixel new on the finer grid is rendered too unless the four
 /// pixels of the coarser grid around it have its panoptic and fixed-field labels and it crosses
 /// the same primitives as they do, in which case it takes their labels and an interpolation of
@@ -160,11 +160,7 @@ pub fn render_image(
             *out = (v * 255.0).round() as u8;
         }
     }
-    let coarse_stride = if r.adaptive {
-        r.coarse_stride.max(1)
-    } else {
-        1
-    };
+    let coarse_stride = r.coarse_stride.max(1);
     let on_grid = |x: u32, n: u32, s: u32| x % s == 0 || x == n - 1;
     let first: Vec<u32> = (0..height)
         .filter(|&y| on_grid(y, height, coarse_stride))

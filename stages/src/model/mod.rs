@@ -1,7 +1,8 @@
 //! THE model, once: the radiance field with dual semantic fields, its losses and volume
 //! rendering, behind one engine seam.
 //!
-//! - [`config`]: what users set (field architecture, optimiser, losses) and [`FieldSpec`].
+//! - [`config`]: the field and the losses as users set them, [`FieldSpec`], and what a trainer is
+//!   given ([`TrainConfig`]: field, [`Losses`], [`optimiser::Optimiser`]).
 //! - [`params`]: the parameter layout and seeded initialisation, as named rows every engine
 //!   reads and writes; [`weights`]: those rows and the model description as tables.
 //! - [`engine`]: [`Engine`] (`fused` or a burn backend), the [`Trainer`] and [`Field`] seams
@@ -27,6 +28,7 @@ pub mod field;
 pub mod fused;
 pub mod loss;
 pub mod maps;
+pub mod optimiser;
 pub mod params;
 pub mod train;
 pub mod weights;
@@ -38,13 +40,13 @@ pub(crate) mod testing;
 
 pub use batch::{batch_indices, BatchOrder, RayBatch, RaySamples, RayTargets};
 pub use config::{
-    EncodingKind, FieldConfig, FieldSpec, GridConfig, JitterLabels, LateJitter, LossWeights,
-    SkyColourInput, TrainConfig,
+    EncodingKind, FieldConfig, FieldSpec, GridConfig, Losses, SkyColourInput, TrainConfig,
 };
 pub use engine::{Engine, EngineChoice};
 pub use error::{ModelError, TrainError};
 pub use field::{Field, FieldSamples, Heads};
 pub use loss::{LossTerm, LossTerms, PROB_EPS};
+pub use optimiser::Optimiser;
 pub use params::NamedWeight;
-pub use train::{fit, Gradients, Trainer};
+pub use train::{fit, Gradients, Schedule, Trainer};
 pub use weights::ModelInfo;

@@ -84,17 +84,20 @@ pub fn toy_field() -> FieldConfig {
 pub fn toy_config() -> TrainConfig {
     TrainConfig {
         field: toy_field(),
-        lr: 1e-2,
-        rays_per_batch: 64,
+        optimiser: super::optimiser::Optimiser {
+            lr: 1e-2,
+            ..Default::default()
+        },
         iterations: 100,
         // The paper's weights, whatever the pipeline's default: the toy tests were sized on them.
-        losses: super::config::LossWeights {
+        losses: super::config::Losses {
             fixed_2d: 1.0,
             learned_2d: 1.0,
             point_3d: 1.0,
             rgb: 1.0,
             depth: 0.1,
             sky_prior: 0.0,
+            ..Default::default()
         },
         ..Default::default()
     }

@@ -1,10 +1,55 @@
-//! Training, whatever the engine: the [`Trainer`] seam (one step, gradients, weights out) and the
-//! one training loop over it.
+//! Training, whatever the engine: the [`Trainer`] seam (one step, gradients, weights out), the
+//! one training loop over it, and how long it runs ([`Schedule`], the `train` stage's `schedule`
+//! group).
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 
 use super::batch::RayBatch;
-use super::error::TrainError;
+use super::error::{ModelError, TrainError};
 use super::loss::{LossTerm, LossTerms};
 use super::params::NamedWeight;
+
+/// How long training runs and how many rays each step draws.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct Schedule {
+    /// Optimisation steps (paper: 80000).
+    pub iterations: usize,
+    /// Rays drawn per step (paper: 2048); every training ray once per pass, in a seeded order.
+    pub rays_per_batch: usize,
+}
+
+impl Default for Schedule {
+    fn default() -> Self {
+        Self {
+            iterations: 1700,
+            rays_per_batch: 1024,
+        }
+    }
+}
+
+/// The most rays one step may draw: 2^20 (a batch's samples and their activations are held
+/// whole in memory; 2^20 rays of 32 samples are several GB).
+pub const MAX_RAYS_PER_BATCH: usize = 1 << 20;
+
+impl Schedule {
+    /// Checks ranges; errors name the parameter, its value and the range allowed.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        if self.iterations == 0 {
+            return Err(ModelError::Param(
+                "schedule.iterations = 0 trains nothing: it must be >= 1".into(),
+            ));
+        }
+        if !(1..=MAX_RAYS_PER_BATCH).contains(&self.rays_per_batch) {
+            return Err(ModelError::Param(format!(
+                "schedule.rays_per_batch = {} must be in 1..={MAX_RAYS_PER_BATCH}",
+                self.rays_per_batch
+            )));
+        }
+        Ok(())
+    }
+}
 
 /// Loss values and gradients of one batch, without an update (tests, the failure path).
 #[derive(Debug, Clone, PartialEq)]
@@ -41,4 +86,31 @@ pub fn fit(
         on_step(&losses);
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_or_oversized_schedules_are_refused_with_the_range() {
+        Schedule::default().validate().unwrap();
+        let none = Schedule {
+            iterations: 0,
+            ..Schedule::default()
+        };
+        let e = none.validate().unwrap_err().to_string();
+        assert!(e.contains("schedule.iterations = 0"), "{e}");
+        for rays in [0, MAX_RAYS_PER_BATCH + 1, 4_000_000_000] {
+            let s = Schedule {
+                rays_per_batch: rays,
+                ..Schedule::default()
+            };
+            let e = s.validate().unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("schedule.rays_per_batch = {rays}")) && e.contains("1..="),
+                "{e}"
+            );
+        }
+    }
 }

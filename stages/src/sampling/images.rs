@@ -475,7 +475,7 @@ pub struct JitteredRays<'r> {
     /// Window width in pixels, 0..=1 (1: the whole pixel).
     pub width: f64,
     /// Label a ray by a neighbour drawn with the bilinear weights of its point
-    /// ([`crate::model::JitterLabels::Bilinear`]) instead of by its own pixel.
+    /// ([`crate::sampling::JitterLabels::Bilinear`]) instead of by its own pixel.
     pub bilinear_labels: bool,
 }
 

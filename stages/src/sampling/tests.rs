@@ -508,17 +508,15 @@ fn training_refuses_depth_classes_the_scene_lacks() {
     use crate::kinds::train::{Train, TrainParams};
     use crate::TypedStage;
     let (mem, _, _) = planned(small_street());
-    let p = TrainParams {
-        depth_classes: vec!["rail track".into()],
-        ..TrainParams::default()
-    };
+    let mut p = TrainParams::default();
+    p.losses.depth_classes = vec!["rail track".into()];
     Train::validate(&p).unwrap();
     let e = Train
         .run(&p, &mem.inputs(), &crate::NoProgress)
         .expect_err("refused")
         .to_string();
     assert!(
-        e.contains("depth_classes") && e.contains("rail track") && e.contains("road"),
+        e.contains("losses.depth_classes") && e.contains("rail track") && e.contains("road"),
         "{e}"
     );
 }

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use crate::{Result, StageError};
 
 /// Parameters of `stereo_depth`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct StereoParams {
     /// Number of disparities searched (0..max_disparity pixels).

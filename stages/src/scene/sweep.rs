@@ -28,12 +28,13 @@ use crate::geometry::Camera;
 use crate::{Result, StageError};
 
 /// Parameters of `motion_stereo`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct SweepParams {
     /// Cameras whose images get depth (numbers or KITTI-360 names; 2, 3: the fisheye cameras).
     /// Empty: none, the stereo depth passes through unchanged (a switch for comparisons).
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
     pub cameras: Vec<u8>,
     /// Frame offsets of the images each one is matched against (those present are used).
     pub neighbours: Vec<i32>,
@@ -41,30 +42,31 @@ pub struct SweepParams {
     pub min_depth_m: f64,
     /// Depths at or beyond this are dropped, metres (the search goes on to infinity). 10, not
     /// the perspective stereo's 15: all of 10 to 15 m spans about two distance steps, and
-    /// training with those depths made far depth worse on the synthetic street (README).
+    /// training with those depths made far depth worse (docs/experiments/fisheye.md).
     pub max_depth_m: f64,
     /// Distances searched per pixel, evenly spaced in inverse distance from `min_depth_m` to
     /// infinity.
     pub hypotheses: u32,
-    /// Census window radius: 3 = 7x7 (found more of the weakly textured surfaces than 5x5 on
-    /// the synthetic street at the same error rate).
+    /// Census window radius: 3 = 7x7. It found more of the weakly textured surfaces than 5x5
+    /// on the synthetic street at the same error rate.
     pub census_radius: u32,
-    /// Penalties of a one-step and of a larger change of distance step along a path.
+    /// Penalty of a one-step change of distance step along a path.
     pub p1: u16,
+    /// Penalty of a larger change of distance step along a path.
     pub p2: u16,
     /// The best cost must beat the second best (more than a step away) by this fraction.
     pub uniqueness: f32,
     /// A depth is kept when a neighbour's depth map confirms its point within this fraction.
     pub consistency: f64,
-    /// A depth is kept only where none of its 8 neighbours differs by more than this fraction
-    /// and at most `max_missing_neighbours` of them have no depth: wrong matches gather along
-    /// holes and depth edges.
+    /// A depth is kept only where none of its 8 neighbours differs by more than this fraction.
+    /// Wrong matches gather along holes and depth edges.
     pub max_jump: f64,
+    /// A depth is kept only where at most this many of its 8 neighbours have no depth.
     pub max_missing_neighbours: u32,
-    /// Images wider or taller than this are matched at 1/n of their size (the smallest whole
-    /// n that brings both within it; n x n pixels averaged) and each depth is given back to
-    /// the n x n pixels it came from: at 1400 px the distance steps lie several pixels apart,
-    /// so full resolution would cost 16 times the time for no finer depth.
+    /// Images wider or taller than this (pixels) are matched at 1/n of their size. The n is the
+    /// smallest whole number that brings both within it (n x n pixels averaged), and each depth
+    /// is given back to the n x n pixels it came from: at 1400 px the distance steps lie several
+    /// pixels apart, so full resolution would cost 16 times the time for no finer depth.
     pub max_side: u32,
 }
 

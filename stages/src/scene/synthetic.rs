@@ -38,7 +38,7 @@ use super::layout::{Layout, LayoutParams, RIG_Y};
 use super::{depth, layout, noise, rng, tracer};
 
 /// Parameters of the synthetic scene. Every field has a default.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct SceneParams {
     /// Seed of every random choice (layout, annotation jitter, exposure, noise, sensors).
@@ -68,30 +68,33 @@ pub struct SceneParams {
     pub camera_height_m: f64,
     /// Pseudo-label noise level (0 = ground truth; 1 calibrated to about 65-70 mIoU).
     pub noise: f64,
-    /// Chance (at noise 1) that a far segment (mean depth beyond 30 m) is labelled whole as a
-    /// class it is confused with, as networks fail on distant regions
-    /// ([`noise::far_region_errors`]); 0 = off, the default.
+    /// Chance (at noise 1) that a far segment is labelled whole as a class it is confused with.
+    /// Far: a mean depth beyond 30 m; networks fail so on distant regions
+    /// ([`noise::far_region_errors`]). 0 = off, the default.
     pub noise_far_regions: f64,
-    /// Amount of surface detail in the procedural textures (per-stone, per-slab and grain
-    /// variation on road, walls, facades, grass and foliage), 1 = the default street, 0 = every
-    /// surface one flat colour between its joints, markings and windows (uniform asphalt
-    /// and rendered walls, as on real streets). At 1/8 scale it barely changes the ablation:
-    /// sensor noise, shading, joints and markings carry the matching (README, issue 19).
+    /// Amount of surface detail in the procedural textures: 1 = the default street, 0 = none.
+    /// Detail is per-stone, per-slab and grain variation on road, walls, facades, grass and
+    /// foliage; at 0 every surface is one flat colour between its joints, markings and windows
+    /// (uniform asphalt and rendered walls, as on real streets). At 1/8 scale it barely changes
+    /// the ablation (docs/experiments/stereo-reach.md).
     pub texture: f64,
-    /// Rays per pixel side for the image colours: 1 = one ray through the pixel centre (a
-    /// point sample), n > 1 = the mean over n x n rays spread over the pixel, as a real sensor
-    /// integrates its pixel's footprint. Labels and depth stay the centre ray's. At most 8.
+    /// Rays per pixel side for the image colours, 1..=8: n x n rays averaged over the pixel.
+    /// 1 is a point sample through the pixel centre; more integrate the pixel's footprint as a
+    /// real sensor does. Labels and depth stay the centre ray's.
     pub supersample: u32,
     /// Farthest depth stereo matching reports, metres.
     pub stereo_max_depth_m: f64,
     /// Classes that appear (paper class names); road, terrain and sky are required.
     pub classes: Vec<String>,
-    /// Also render the two side fisheye cameras of KITTI-360 (camera 2, image_02, looking left;
-    /// camera 3, image_03, looking right): its MEI calibration's shape, 1400x1400 at `scale` 1,
-    /// about 190 degrees across the lens circle.
-    pub fisheye: bool,
-    /// Pseudo labels for the fisheye images too (a 2D network for fisheye images may not
-    /// exist; without them those images train colour only).
+    /// Cameras rendered: the stereo pair `image_00`, `image_01`, and the fisheye cameras listed.
+    /// KITTI-360's side fisheye cameras are `image_02` (looking left) and `image_03` (looking
+    /// right), with its MEI calibration's shape, 1400x1400 at `scale` 1; numbers 0 .. 3 are read
+    /// too. Every image has ground truth.
+    #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
+    pub cameras: Vec<u8>,
+    /// Pseudo labels for the fisheye images too; without them those images train colour only.
+    /// A 2D network for fisheye images may not exist.
     pub fisheye_pseudo_labels: bool,
 }
 
@@ -119,7 +122,7 @@ impl Default for SceneParams {
                 .iter()
                 .map(|&c| labels::by_id(c).expect("paper class").name.to_string())
                 .collect(),
-            fisheye: false,
+            cameras: vec![0, 1],
             fisheye_pseudo_labels: false,
         }
     }
@@ -271,6 +274,13 @@ impl SceneParams {
         if p.eval_every == 0 {
             return bad("`eval_every` must be at least 1".into());
         }
+        if !(p.cameras.contains(&0) && p.cameras.contains(&1)) || p.cameras.iter().any(|&c| c > 3) {
+            return bad(format!(
+                "`cameras` = {:?}: the synthetic street renders the stereo pair image_00, image_01 \
+                 and any of the fisheye cameras image_02, image_03",
+                p.cameras
+            ));
+        }
         if !(p.baseline_m.is_finite() && p.baseline_m > 0.0 && p.baseline_m < 5.0) {
             return bad(format!(
                 "`baseline_m` must be in (0, 5), got {}",
@@ -407,11 +417,11 @@ impl Street {
             .frame_numbers()
             .flat_map(|f| {
                 let eval = p.is_eval(f);
-                let fisheye = p.fisheye.then(|| fisheye_rig(p, f));
                 rig(p, f)
                     .into_iter()
-                    .chain(fisheye.into_iter().flatten())
+                    .chain(fisheye_rig(p, f))
                     .enumerate()
+                    .filter(|(c, _)| p.cameras.contains(&(*c as u8)))
                     .map(move |(c, cam)| CameraRow {
                         frame: f,
                         camera: c as u8,

@@ -412,7 +412,9 @@ impl Evaluation {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    const VERSION: u32 = 8;
+    // 9: `cameras` defaults to the scene's cameras but the right one (the same scores for the
+    // same images).
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -448,7 +450,7 @@ impl TypedStage for Evaluate {
     ];
 
     fn validate(p: &EvaluateParams) -> Result<()> {
-        if p.cameras.is_empty() || p.cameras.iter().any(|&c| c > 3) {
+        if p.cameras.iter().any(|&c| c > 3) {
             return Err(StageError::Params(
                 "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
             ));
@@ -493,7 +495,7 @@ impl TypedStage for Evaluate {
         }
         let mut eval: Vec<&CameraRow> = cameras
             .iter()
-            .filter(|c| c.eval && p.cameras.contains(&c.camera))
+            .filter(|c| c.eval && p.scores(c.camera))
             .filter(|c| p.frames.is_empty() || p.frames.contains(&c.frame))
             .collect();
         eval.sort_by_key(|c| (c.camera, c.frame));

@@ -4,12 +4,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::labels;
 
-#[derive(Debug, Clone, Serialize, Deserialize)]
+/// Parameters of the `evaluate` stage.
+#[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct EvaluateParams {
-    /// Cameras evaluated (0 = left, 1 = right, 2 and 3 the fisheye cameras); KITTI-360 has GT
-    /// for the left camera only.
+    /// Cameras scored (`image_00` .. `image_03`, or 0 .. 3); empty: the scene's, but `image_01`.
+    /// Only the scene's evaluation images are scored (those of its evaluation frames that have
+    /// GT). The right perspective camera is left out by default, as the paper scores the left
+    /// one: it sees the left camera's view a baseline away.
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
     pub cameras: Vec<u8>,
     /// Evaluated classes (label ids); default: the paper's 14 classes.
     pub classes: Vec<u8>,
@@ -21,15 +25,26 @@ pub struct EvaluateParams {
     pub mc_distance: f64,
     /// Depth metrics use LiDAR pixels closer than this, metres.
     pub max_depth: f64,
-    /// Evaluation frames scored (default, empty: every one the scene marks); with
-    /// `render.frames`, the frames rendered, e.g. those in the middle of a longer window.
+    /// Evaluation frames scored; empty: every one the scene marks.
+    /// With `render.frames`, the frames rendered, e.g. those in the middle of a longer window.
     pub frames: Vec<u32>,
+}
+
+impl EvaluateParams {
+    /// Whether images of `camera` are scored.
+    pub fn scores(&self, camera: u8) -> bool {
+        if self.cameras.is_empty() {
+            camera != 1
+        } else {
+            self.cameras.contains(&camera)
+        }
+    }
 }
 
 impl Default for EvaluateParams {
     fn default() -> Self {
         Self {
-            cameras: vec![0],
+            cameras: Vec::new(),
             classes: labels::PAPER_CLASSES.to_vec(),
             things: labels::PAPER_THINGS.to_vec(),
             min_segment_px: 100,

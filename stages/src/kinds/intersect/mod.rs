@@ -12,7 +12,8 @@ pub struct Intersect;
 impl TypedStage for Intersect {
     type Params = IntersectParams;
     const KIND: &'static str = "intersect";
-    const VERSION: u32 = 3;
+    // 4: `cameras` defaults to every camera of the scene (the same plan for the same cameras).
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str =
         "ray-primitive intervals of every pixel (the first k per ray, plus a sky interval)";
     const INPUTS: &'static [InputSlot] = &[InputSlot {
@@ -42,9 +43,9 @@ impl TypedStage for Intersect {
                 p.far
             )));
         }
-        if p.cameras.is_empty() {
+        if p.cameras.iter().any(|&c| c > 3) {
             return Err(StageError::Params(
-                "`cameras` must list at least one camera id (0 = left, 1 = right)".into(),
+                "`cameras` must list KITTI-360 cameras 0 .. 3 (2, 3: the fisheye cameras)".into(),
             ));
         }
         Ok(())
@@ -55,13 +56,17 @@ impl TypedStage for Intersect {
         let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
         let rows: Vec<&CameraRow> = rows
             .iter()
-            .filter(|r| p.cameras.contains(&r.camera))
+            .filter(|r| p.cameras.is_empty() || p.cameras.contains(&r.camera))
             .collect();
         if rows.is_empty() {
-            return Err(StageError::Input(format!(
-                "no image of the `cameras` table has a camera id in {:?}",
-                p.cameras
-            )));
+            return Err(StageError::Input(if p.cameras.is_empty() {
+                "the scene's `cameras` table has no image".to_string()
+            } else {
+                format!(
+                    "no image of the scene's `cameras` table has a camera id in {:?}",
+                    p.cameras
+                )
+            }));
         }
         let bvh = Bvh::build(&prims);
         let total = rows.len() as u64;

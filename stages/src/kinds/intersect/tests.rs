@@ -194,13 +194,16 @@ fn camera_selection_and_bad_params() {
     )
     .unwrap_err();
     assert!(e.to_string().contains("camera id in [0]"), "{e}");
+    // No camera named: every camera of the scene.
+    let every = run(&IntersectParams::default(), &scene(1)).unwrap();
+    assert_eq!(every.num_rows(), 1);
     let stage: &dyn Stage = &Intersect;
     for (bad, what) in [
         (serde_json::json!({"k": 0}), "`k`"),
         (serde_json::json!({"k": 300}), "`k`"),
         (serde_json::json!({"sky_interval": -1.0}), "`sky_interval`"),
         (serde_json::json!({"far": 0.0}), "`far`"),
-        (serde_json::json!({"cameras": []}), "`cameras`"),
+        (serde_json::json!({"cameras": [4]}), "`cameras`"),
         (serde_json::json!({"kk": 3}), "unknown field"),
     ] {
         let e = stage.canonical_params(&bad).unwrap_err().to_string();

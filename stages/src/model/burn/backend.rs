@@ -31,6 +31,14 @@ impl Backend {
     /// in: the crate's default feature).
     pub const REFERENCE: Backend = Backend::Flex;
 
+    /// Every backend, compiled in or not.
+    pub const ALL: [Backend; 4] = [
+        Backend::Flex,
+        Backend::NdArray,
+        Backend::Wgpu,
+        Backend::Cuda,
+    ];
+
     /// The backends compiled into this build, in priority order.
     pub fn available() -> Vec<Backend> {
         let mut all = Vec::new();

@@ -121,20 +121,20 @@ fn losses(
                     render_semantics(&w, bt.fixed.clone(), sky),
                     bt.label_one_hot.clone(),
                     bt.labelled.clone(),
-                    config.label_eps,
+                    config.losses.label_eps,
                 ),
                 LossTerm::Learned2d => loss::label_nll(
                     render_semantics(&w, softmax(logits.clone().expect("semantics head"), 2), sky),
                     bt.label_one_hot.clone(),
                     bt.learned_mask.clone(),
-                    config.label_eps,
+                    config.losses.label_eps,
                 ),
                 LossTerm::Point3d => loss::point_ce(
                     logits.clone().expect("semantics head"),
                     bt.fixed.clone(),
                     bt.unique.clone(),
                     density.clone(),
-                    config.sigma_threshold,
+                    config.losses.sigma_threshold,
                 ),
                 LossTerm::Rgb => loss::rgb_mse(
                     render_rgb(&w, out.rgb.clone().expect("rgb head").reshape([r, n, 3])),
@@ -153,7 +153,7 @@ fn losses(
                     bt.fixed.clone().narrow(2, sky, 1),
                     bt.rgb.clone(),
                     bt.unlabelled.clone(),
-                    config.sky_prior_colour,
+                    config.losses.sky_prior_colour,
                 ),
             };
             (term, value)
@@ -336,9 +336,9 @@ impl Trainer {
     /// Continues training `field` (which must live on an autodiff device) with fresh Adam state.
     pub fn from_field(config: TrainConfig, field: RadianceField) -> Self {
         let optimizer = AdamConfig::new()
-            .with_beta_1(config.adam_beta1)
-            .with_beta_2(config.adam_beta2)
-            .with_epsilon(config.adam_epsilon)
+            .with_beta_1(config.optimiser.adam_beta1)
+            .with_beta_2(config.optimiser.adam_beta2)
+            .with_epsilon(config.optimiser.adam_epsilon)
             .init();
         let terms = config.losses.enabled();
         Self {
@@ -434,7 +434,7 @@ impl Trainer {
             Ok(_) => return Err(self.blame_gradient(field, batch, iteration, "(norm overflow)")),
             Err(param) => return Err(self.blame_gradient(field, batch, iteration, &param)),
         };
-        let clip = self.config.grad_clip_norm;
+        let clip = self.config.optimiser.grad_clip_norm;
         if clip > 0.0 && norm > clip {
             let mut scale = ScaleGrads {
                 grads: &mut grads,

@@ -12,7 +12,7 @@ pub fn supports(config: &FieldConfig) -> Result<(), ModelError> {
     if config.encoding != EncodingKind::Grid {
         return Err(ModelError::Unsupported {
             engine: "fused",
-            what: "supports `train.field.encoding: grid` only; use backend flex for pe".into(),
+            what: "supports `field.encoding: grid` only; use backend flex for pe".into(),
         });
     }
     Ok(())

@@ -136,7 +136,9 @@ impl Work {
                 }
                 state.depth += w * s.t_mid[gi];
                 let mut mask = 0.0;
-                if weights[2] != 0.0 && self.sigma[li] > config.sigma_threshold && is_one_hot(fixed)
+                if weights[2] != 0.0
+                    && self.sigma[li] > config.losses.sigma_threshold
+                    && is_one_hot(fixed)
                 {
                     mask = 1.0;
                     let z = &self.sem[f.semantic.len() - 1][li * c..(li + 1) * c];
@@ -160,9 +162,9 @@ impl Work {
                 self.sky_prior_forward(s, t, r, r0, config, sky, remainder, &mut state);
             }
             if label >= 0 {
-                self.sums.terms[0] += -((shat + config.label_eps).ln()) as f64;
+                self.sums.terms[0] += -((shat + config.losses.label_eps).ln()) as f64;
                 if !config.ray_mask || t.ray_mask[r] != 0.0 {
-                    self.sums.terms[1] += -((sl + config.label_eps).ln()) as f64;
+                    self.sums.terms[1] += -((sl + config.losses.label_eps).ln()) as f64;
                 }
             }
             for ch in 0..3 {
@@ -210,7 +212,7 @@ impl Work {
         let d2: f32 = (0..3)
             .map(|ch| (state.gain[ch] * sky_rgb[ch] / count - t.rgb[r * 3 + ch]).powi(2))
             .sum();
-        let tau = config.sky_prior_colour;
+        let tau = config.losses.sky_prior_colour;
         state.sky_gate = (-d2 / (tau * tau)).exp();
         self.sums.terms[5] += (state.sky_gate * (1.0 - shat_sky)) as f64;
     }
@@ -283,13 +285,13 @@ impl Work {
             let sky_live = label >= 0 && label as usize == sky && st.remainder_live;
             let sky_term = if sky_live { 1.0 } else { 0.0 };
             let cf = if label >= 0 && w[0] != 0.0 {
-                -w[0] / scale.fixed / (st.shat_label + config.label_eps)
+                -w[0] / scale.fixed / (st.shat_label + config.losses.label_eps)
             } else {
                 0.0
             };
             let learned = label >= 0 && (!config.ray_mask || t.ray_mask[r] != 0.0);
             let cl = if learned && w[1] != 0.0 {
-                -w[1] / scale.learned / (st.s_label + config.label_eps)
+                -w[1] / scale.learned / (st.s_label + config.losses.label_eps)
             } else {
                 0.0
             };

@@ -3,9 +3,11 @@
 use super::*;
 use crate::model::batch::RayBatch;
 use crate::model::burn::{reference_gradients, Backend, FieldHead, RadianceField};
-use crate::model::config::{FieldConfig, GridConfig, LossWeights, SkyColourInput, TrainConfig};
+use crate::model::config::Losses;
+use crate::model::config::{FieldConfig, GridConfig, SkyColourInput, TrainConfig};
 use crate::model::field::Heads;
 use crate::model::loss::LossTerm;
+use crate::model::optimiser::Optimiser;
 use crate::model::params::{self, NamedWeight};
 use crate::model::testing::{lively, toy_scene, toy_spec};
 
@@ -94,19 +96,23 @@ fn losses_and_gradients_match_burn_autodiff_per_term_and_together() {
     let batch = varied_batch();
     let mut configs: Vec<(String, TrainConfig)> = Vec::new();
     let base = TrainConfig {
-        sigma_threshold: 0.3,
+        losses: Losses {
+            sigma_threshold: 0.3,
+            ..Losses::default()
+        },
         ..Default::default()
     };
     configs.push(("all terms".into(), base.clone()));
     for term in LossTerm::ALL {
         let mut c = base.clone();
-        c.losses = LossWeights {
+        c.losses = Losses {
             fixed_2d: 0.0,
             learned_2d: 0.0,
             point_3d: 0.0,
             rgb: 0.0,
             depth: 0.0,
             sky_prior: 0.0,
+            ..base.losses.clone()
         };
         match term {
             LossTerm::Fixed2d => c.losses.fixed_2d = 1.0,
@@ -147,7 +153,10 @@ fn losses_and_gradients_match_burn_autodiff_per_term_and_together() {
 fn gradients_match_burn_for_other_head_depths() {
     let batch = varied_batch();
     let config = TrainConfig {
-        sigma_threshold: 0.3,
+        losses: Losses {
+            sigma_threshold: 0.3,
+            ..Losses::default()
+        },
         ..Default::default()
     };
     for head_layers in [0, 2] {
@@ -236,7 +245,10 @@ fn a_direction_only_sky_colour_is_the_same_in_both_engines_and_ignores_position(
     }
 
     let config = TrainConfig {
-        sigma_threshold: 0.3,
+        losses: Losses {
+            sigma_threshold: 0.3,
+            ..Losses::default()
+        },
         ..Default::default()
     };
     for head_layers in [0, 1, 2] {
@@ -266,7 +278,10 @@ fn a_direction_only_sky_colour_is_the_same_in_both_engines_and_ignores_position(
 fn training_lowers_every_loss_and_is_deterministic() {
     let batch = varied_batch();
     let config = TrainConfig {
-        lr: 1e-2,
+        optimiser: Optimiser {
+            lr: 1e-2,
+            ..Optimiser::default()
+        },
         ..Default::default()
     };
     let run = || {
@@ -317,8 +332,11 @@ fn non_finite_targets_are_named_not_trained_on() {
 #[test]
 fn exposure_gradients_match_finite_differences() {
     let config = TrainConfig {
-        sigma_threshold: 0.3,
-        exposure: true,
+        losses: Losses {
+            sigma_threshold: 0.3,
+            exposure: true,
+            ..Losses::default()
+        },
         ..Default::default()
     };
     let plain = varied_batch();
@@ -389,9 +407,15 @@ fn exposure_gradients_match_finite_differences() {
 #[test]
 fn exposure_learns_a_darker_image() {
     let config = TrainConfig {
-        exposure: true,
-        lr: 1e-2,
-        lr_final_factor: 1.0,
+        losses: Losses {
+            exposure: true,
+            ..Losses::default()
+        },
+        optimiser: Optimiser {
+            lr: 1e-2,
+            lr_final_factor: 1.0,
+            ..Optimiser::default()
+        },
         ..Default::default()
     };
     let one = varied_batch();

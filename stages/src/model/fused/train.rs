@@ -129,7 +129,7 @@ impl FusedTrainer {
         let config = &self.config;
         let sky = s.classes - 1;
         let mut gains: Vec<[f32; 3]> = Vec::new();
-        if config.exposure && !t.image.is_empty() {
+        if config.losses.exposure && !t.image.is_empty() {
             let n = t.image.iter().map(|&i| i as usize + 1).max().unwrap_or(0);
             if n > self.exposure.len() {
                 self.exposure.resize(n, [0.0; 3]);
@@ -299,16 +299,16 @@ impl FusedTrainer {
             Ok(_) => return Err(self.blame(batch, "(norm overflow)")),
             Err(p) => return Err(self.blame(batch, &p)),
         };
-        let clip = self.config.grad_clip_norm;
+        let clip = self.config.optimiser.grad_clip_norm;
         let factor = if clip > 0.0 && norm > clip {
             clip / (norm + 1e-6)
         } else {
             1.0
         };
         let (b1, b2, eps) = (
-            self.config.adam_beta1,
-            self.config.adam_beta2,
-            self.config.adam_epsilon,
+            self.config.optimiser.adam_beta1,
+            self.config.optimiser.adam_beta2,
+            self.config.optimiser.adam_epsilon,
         );
         let time = (iteration + 1) as i32;
         let (c1, c2) = (1.0 - b1.powi(time), 1.0 - b2.powi(time));

@@ -12,7 +12,7 @@ use crate::{Result, StageError};
 use super::parse::err;
 
 /// Parameters of `kitti360_scene`. Paths are relative to `root` unless absolute.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct Kitti360Params {
     /// The KITTI-360 root directory (holding data_2d_raw/, data_poses/, calibration/, ...).
@@ -25,17 +25,18 @@ pub struct Kitti360Params {
     pub last_frame: u32,
     /// Explicit frame list; overrides the range when non-empty. Each must have a pose.
     pub frames: Vec<u32>,
-    /// Cameras to load, by name or number: `image_00` (0, left), `image_01` (1, right),
-    /// `image_02` (2) and `image_03` (3), the left and right side fisheye cameras.
+    /// Cameras to load: `image_00`, `image_01` (the stereo pair) and the fisheye cameras listed.
+    /// `image_02` and `image_03` are the left and right side fisheye cameras; numbers 0 .. 3 are
+    /// read too. Rays, training and evaluation take these cameras unless a stage narrows them.
     #[serde(deserialize_with = "crate::geometry::camera::camera_ids")]
+    #[schemars(with = "Vec<crate::geometry::camera::CameraName>")]
     pub cameras: Vec<u8>,
     /// Evaluation frames; when empty, every `eval_every`-th selected frame from the first.
     pub eval_frames: Vec<u32>,
     /// See `eval_frames` (at least 1 unless `eval_frames` lists the frames).
     pub eval_every: u32,
-    /// `auto`: of those, only images with GT (`gt_semantic`, and `gt_instance` when set) are
-    /// evaluated, the others are trained on like any frame (most of KITTI-360 has no 2D GT);
-    /// `required`: an evaluation image without GT is an error.
+    /// `auto`: evaluation images without GT are trained on instead; `required`: they are errors.
+    /// GT is `gt_semantic`, and `gt_instance` when set; most of KITTI-360 has no 2D GT.
     pub eval_gt: EvalGt,
     /// Pose file.
     pub poses: String,
@@ -53,16 +54,16 @@ pub struct Kitti360Params {
     pub fisheye_calibration: String,
     /// Camera -> pose-frame extrinsics of every camera (`image_0K:` lines, 3x4).
     pub cam_to_pose: String,
-    /// Pose frame -> world per frame (3x4): with `cam_to_pose`, places the fisheye cameras
-    /// (the perspective ones stay on `poses`, checked to agree).
+    /// Pose frame -> world per frame (3x4): with `cam_to_pose`, places the fisheye cameras.
+    /// The perspective cameras stay on `poses`, checked to agree.
     pub imu_poses: String,
-    /// Optional noisy 2D labels of the fisheye cameras; without them the fisheye images train
+    /// Optional noisy 2D labels of the fisheye cameras. Without them the fisheye images train
     /// colour only (and still get labels rendered).
     pub fisheye_pseudo_labels: Option<String>,
-    /// Optional weak depth of the left camera (16-bit PNG, metres * 256, 0 = none); null when the
-    /// pipeline computes it with the `stereo_depth` stage.
+    /// Optional weak depth of the left camera (16-bit PNG, metres * 256, 0 = none). Null when
+    /// the pipeline computes it with the `stereo_depth` stage.
     pub stereo_depth: Option<String>,
-    /// Optional GT semantic PNGs (8-bit ids); frames without a file have no GT row, but every
+    /// Optional GT semantic PNGs (8-bit ids). Frames without a file have no GT row, but every
     /// evaluation frame needs one.
     pub gt_semantic: Option<String>,
     /// Optional GT instance PNGs (16-bit, id*1000 + instance); same rule as `gt_semantic`.
@@ -73,7 +74,7 @@ pub struct Kitti360Params {
     pub lidar_calib: String,
     /// Primitives farther than this from every selected camera centre are dropped, metres.
     pub max_distance_m: f64,
-    /// World position of the scene frame's origin; null = the first left camera's centre
+    /// World position of the scene frame's origin. Null: the first left camera's centre,
     /// rounded to whole metres.
     pub origin: Option<[f64; 3]>,
     /// Human-readable scene name; empty = "<sequence> frames <first>-<last>".
@@ -81,7 +82,7 @@ pub struct Kitti360Params {
 }
 
 /// Whether evaluation frames must have GT (see [`Kitti360Params::eval_gt`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum EvalGt {
     Auto,

@@ -279,7 +279,7 @@ fn streamed_tables_equal_the_scene_generated_whole() {
         frames: 3,
         first_frame: 40,
         eval_every: 2,
-        fisheye: true,
+        cameras: vec![0, 1, 2, 3],
         fisheye_pseudo_labels: true,
         ..SceneParams::default()
     };
@@ -628,7 +628,7 @@ fn the_intersect_stage_accepts_the_scene() {
 fn fisheye_cameras_render_the_street_through_their_lens() {
     let p = SceneParams {
         frames: 2,
-        fisheye: true,
+        cameras: vec![0, 1, 2, 3],
         fisheye_pseudo_labels: true,
         ..Default::default()
     };

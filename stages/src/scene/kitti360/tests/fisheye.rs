@@ -209,7 +209,7 @@ fn bad_fisheye_inputs_name_the_file_and_what_is_wrong() {
 fn the_exported_fisheye_scene_loads_back_into_equal_tables() {
     let sp = SceneParams {
         frames: 3,
-        fisheye: true,
+        cameras: vec![0, 1, 2, 3],
         fisheye_pseudo_labels: true,
         ..Default::default()
     };
@@ -277,7 +277,7 @@ fn the_exported_fisheye_scene_loads_back_into_equal_tables() {
 fn an_independent_mei_projection_of_the_exported_calibration_agrees() {
     let sp = SceneParams {
         frames: 1,
-        fisheye: true,
+        cameras: vec![0, 1, 2, 3],
         ..Default::default()
     };
     let g = crate::scene::synthetic::generate(&sp, &NoProgress).unwrap();
