@@ -365,7 +365,7 @@ fn leaf_paths(path: &str, v: &Yaml) -> Vec<String> {
     }
 }
 
-/// Where the field `path` (`train.lr`, `origin[0]`) inside a param stands: the field's own key
+/// Where the field `path` (`optimiser.lr`, `origin[0]`) inside a param stands: the field's own key
 /// when the value came from the file, else where the param was given (`--set`).
 fn nested_loc(d: &Decl, given: &Loc, path: &str) -> Loc {
     match given {
@@ -380,7 +380,7 @@ fn nested_loc(d: &Decl, given: &Loc, path: &str) -> Loc {
     }
 }
 
-/// The first NaN or infinity in a param's value, with its path (`train.lr`, `origin[0]`).
+/// The first NaN or infinity in a param's value, with its path (`optimiser.lr`, `origin[0]`).
 fn non_finite(v: &Yaml, path: &str) -> Option<(String, f64)> {
     match v {
         Yaml::Number(n) => n

@@ -207,7 +207,7 @@ pub trait TypedStage: Send + Sync {
 }
 
 /// The params as the kind's struct; an error starts with the path of the field it is about
-/// (`` `train.lr`: invalid type ... ``) when it is not the top level.
+/// (`` `optimiser.lr`: invalid type ... ``) when it is not the top level.
 fn typed_params<P: DeserializeOwned>(params: &Value) -> Result<P> {
     serde_path_to_error::deserialize(params.clone()).map_err(|e| {
         let path = e.path().to_string();

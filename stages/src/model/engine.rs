@@ -158,7 +158,7 @@ impl Engine {
         spec.validate()?;
         if spec.config != config.field {
             return Err(TrainError::Config(
-                "the field spec's config differs from `train.field`".into(),
+                "the field spec's config differs from the trainer's `field`".into(),
             ));
         }
         self.supports(&spec.config)?;

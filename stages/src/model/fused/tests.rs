@@ -326,7 +326,7 @@ fn non_finite_targets_are_named_not_trained_on() {
     }
 }
 
-/// `train.exposure`: with every gain at 1 the losses and the field's gradients are those
+/// `losses.exposure`: with every gain at 1 the losses and the field's gradients are those
 /// without it, and the gains' own gradients, and the field's under other gains, are the
 /// derivatives of the loss (central differences).
 #[test]

@@ -27,7 +27,7 @@ pub struct FusedTrainer {
     iteration: usize,
     moment1: Vec<Vec<f32>>,
     moment2: Vec<Vec<f32>>,
-    /// Per training image (`train.exposure`): the log colour gain, its gradient of the last
+    /// Per training image (`losses.exposure`): the log colour gain, its gradient of the last
     /// step and Adam's moments; grown to the largest image index a batch names.
     exposure: Vec<[f32; 3]>,
     exposure_grad: Vec<[f32; 3]>,
@@ -76,7 +76,7 @@ impl FusedTrainer {
         self.iteration
     }
 
-    /// Each training image's log colour gain (`train.exposure`), by image index.
+    /// Each training image's log colour gain (`losses.exposure`), by image index.
     pub fn exposure(&self) -> &[[f32; 3]] {
         &self.exposure
     }
