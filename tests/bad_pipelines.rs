@@ -96,6 +96,18 @@ fn nested_param_errors_name_the_full_key_and_where_it_was_given() {
             &["`train.schedule.iterations`", "invalid value: integer `-1`"][..],
         ),
         ("scene.seed=.inf", &["`scene.seed`", "infinity"][..]),
+        // Out of range: the full key, the command line and the range.
+        (
+            "train.optimiser.lr=-0.02",
+            &[
+                "command line `train.optimiser.lr=-0.02`",
+                "`train.optimiser.lr`: -0.02 must be > 0",
+            ][..],
+        ),
+        (
+            "train.schedule.rays_per_batch=4000000000",
+            &["`train.schedule.rays_per_batch`: 4000000000 must be in 1..="][..],
+        ),
     ] {
         let (code, _, err) = ws.run(&["--set", set]);
         assert_eq!(code, 2, "{set}: {err}");

@@ -100,15 +100,15 @@ impl GridConfig {
     pub fn validate(&self) -> Result<(), ModelError> {
         if self.levels == 0 || self.features_per_level == 0 {
             return Err(invalid(
-                "field.grid.levels and field.grid.features_per_level must be >= 1",
+                "`field.grid.levels` and `field.grid.features_per_level` must be >= 1",
             ));
         }
         if !(4..=24).contains(&self.log2_table_size) {
-            return Err(invalid("field.grid.log2_table_size must be in 4..=24"));
+            return Err(invalid("`field.grid.log2_table_size` must be in 4..=24"));
         }
         if self.base_resolution == 0 || self.max_resolution < self.base_resolution {
             return Err(invalid(
-                "field.grid.base_resolution must be >= 1 and <= field.grid.max_resolution",
+                "`field.grid.base_resolution` must be >= 1 and <= `field.grid.max_resolution`",
             ));
         }
         Ok(())
@@ -195,17 +195,19 @@ impl FieldConfig {
             self.grid.validate()?;
         }
         if self.hidden == 0 || self.geo_features == 0 {
-            return Err(invalid("field.hidden and field.geo_features must be >= 1"));
+            return Err(invalid(
+                "`field.hidden` and `field.geo_features` must be >= 1",
+            ));
         }
         if self.pe_position_frequencies > 20 || self.pe_direction_frequencies > 20 {
-            return Err(invalid("field.pe_*_frequencies must be <= 20"));
+            return Err(invalid("`field.pe_position_frequencies` and `field.pe_direction_frequencies` must be <= 20"));
         }
         if !self.density_shift.is_finite() {
-            return Err(invalid("field.density_shift must be finite"));
+            return Err(invalid("`field.density_shift` must be finite"));
         }
         if !(self.margin.is_finite() && self.margin >= 0.0) {
             return Err(invalid(format!(
-                "field.margin = {} must be finite and >= 0",
+                "`field.margin`: {} must be finite and >= 0",
                 self.margin
             )));
         }
@@ -363,7 +365,10 @@ impl Losses {
         for t in LossTerm::ALL {
             let w = self.get(t);
             if !(w.is_finite() && w >= 0.0) {
-                return invalid(format!("losses.{} = {w} must be finite and >= 0", t.name()));
+                return invalid(format!(
+                    "`losses.{}`: {w} must be finite and >= 0",
+                    t.name()
+                ));
             }
         }
         if self.enabled().is_empty() {
@@ -371,19 +376,19 @@ impl Losses {
         }
         if !(self.label_eps.is_finite() && self.label_eps > 0.0 && self.label_eps <= 1.0) {
             return invalid(format!(
-                "losses.label_eps = {} must be in (0, 1]",
+                "`losses.label_eps`: {} must be in (0, 1]",
                 self.label_eps
             ));
         }
         if !(self.sky_prior_colour.is_finite() && self.sky_prior_colour > 0.0) {
             return invalid(format!(
-                "losses.sky_prior_colour = {} must be finite and > 0",
+                "`losses.sky_prior_colour`: {} must be finite and > 0",
                 self.sky_prior_colour
             ));
         }
         if !(self.sigma_threshold.is_finite() && self.sigma_threshold >= 0.0) {
             return invalid(format!(
-                "losses.sigma_threshold = {} must be finite and >= 0",
+                "`losses.sigma_threshold`: {} must be finite and >= 0",
                 self.sigma_threshold
             ));
         }

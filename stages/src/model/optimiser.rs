@@ -48,17 +48,17 @@ impl Optimiser {
     /// Checks ranges; errors name the parameter (`optimiser.lr`, ...).
     pub fn validate(&self) -> Result<(), ModelError> {
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            return Err(invalid(format!("optimiser.lr = {} must be > 0", self.lr)));
+            return Err(invalid(format!("`optimiser.lr`: {} must be > 0", self.lr)));
         }
         if !(self.lr_final_factor.is_finite() && self.lr_final_factor > 0.0) {
             return Err(invalid(format!(
-                "optimiser.lr_final_factor = {} must be > 0",
+                "`optimiser.lr_final_factor`: {} must be > 0",
                 self.lr_final_factor
             )));
         }
         if !(self.grad_clip_norm.is_finite() && self.grad_clip_norm >= 0.0) {
             return Err(invalid(format!(
-                "optimiser.grad_clip_norm = {} must be >= 0",
+                "`optimiser.grad_clip_norm`: {} must be >= 0",
                 self.grad_clip_norm
             )));
         }
@@ -68,13 +68,13 @@ impl Optimiser {
         ] {
             if !(0.0..1.0).contains(&beta) {
                 return Err(invalid(format!(
-                    "optimiser.{name} = {beta} must be in [0, 1)"
+                    "`optimiser.{name}`: {beta} must be in [0, 1)"
                 )));
             }
         }
         if !(self.adam_epsilon.is_finite() && self.adam_epsilon > 0.0) {
             return Err(invalid(format!(
-                "optimiser.adam_epsilon = {} must be > 0",
+                "`optimiser.adam_epsilon`: {} must be > 0",
                 self.adam_epsilon
             )));
         }

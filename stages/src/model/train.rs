@@ -38,12 +38,12 @@ impl Schedule {
     pub fn validate(&self) -> Result<(), ModelError> {
         if self.iterations == 0 {
             return Err(ModelError::Param(
-                "schedule.iterations = 0 trains nothing: it must be >= 1".into(),
+                "`schedule.iterations`: 0 trains nothing; it must be >= 1".into(),
             ));
         }
         if !(1..=MAX_RAYS_PER_BATCH).contains(&self.rays_per_batch) {
             return Err(ModelError::Param(format!(
-                "schedule.rays_per_batch = {} must be in 1..={MAX_RAYS_PER_BATCH}",
+                "`schedule.rays_per_batch`: {} must be in 1..={MAX_RAYS_PER_BATCH}",
                 self.rays_per_batch
             )));
         }
@@ -100,7 +100,7 @@ mod tests {
             ..Schedule::default()
         };
         let e = none.validate().unwrap_err().to_string();
-        assert!(e.contains("schedule.iterations = 0"), "{e}");
+        assert!(e.contains("`schedule.iterations`: 0"), "{e}");
         for rays in [0, MAX_RAYS_PER_BATCH + 1, 4_000_000_000] {
             let s = Schedule {
                 rays_per_batch: rays,
@@ -108,7 +108,7 @@ mod tests {
             };
             let e = s.validate().unwrap_err().to_string();
             assert!(
-                e.contains(&format!("schedule.rays_per_batch = {rays}")) && e.contains("1..="),
+                e.contains(&format!("`schedule.rays_per_batch`: {rays}")) && e.contains("1..="),
                 "{e}"
             );
         }

@@ -48,19 +48,20 @@ impl SamplingParams {
     pub fn validate(&self) -> Result<()> {
         if self.samples == 0 || self.samples > 512 {
             return Err(StageError::Params(format!(
-                "sampling.samples = {} must be in 1..=512",
+                "`sampling.samples`: {} must be in 1..=512",
                 self.samples
             )));
         }
         if self.sky_samples > 64 {
             return Err(StageError::Params(format!(
-                "sampling.sky_samples = {} must be in 0..=64",
+                "`sampling.sky_samples`: {} must be in 0..=64",
                 self.sky_samples
             )));
         }
         if !(self.near >= 0.0 && self.far > self.near && self.far.is_finite()) {
             return Err(StageError::Params(format!(
-                "experimental.uniform_sampling = [{}, {}]: [near, far] need 0 <= near < far,                  finite",
+                "`experimental.uniform_sampling`: [{}, {}] must be [near, far] metres with 0 <= \
+                 near < far, both finite",
                 self.near, self.far
             )));
         }

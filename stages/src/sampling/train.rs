@@ -78,13 +78,13 @@ pub enum JitterLabels {
 fn check_jitter(prefix: &str, width: f32, labels: JitterLabels) -> Result<()> {
     if !(width.is_finite() && (0.0..=1.0).contains(&width)) {
         return Err(StageError::Params(format!(
-            "{prefix}pixel_jitter = {width} must be in [0, 1] (pixels)"
+            "`{prefix}pixel_jitter`: {width} must be in [0, 1] (pixels)"
         )));
     }
     if labels == JitterLabels::Bilinear && width == 0.0 {
         return Err(StageError::Params(format!(
-            "{prefix}jitter_labels = bilinear labels jittered rays by their point, but \
-             {prefix}pixel_jitter = 0 casts every ray through its pixel's centre: set it > 0 \
+            "`{prefix}jitter_labels`: bilinear labels jittered rays by their point, but \
+             `{prefix}pixel_jitter` 0 casts every ray through its pixel's centre: set it > 0 \
              (e.g. 0.5)"
         )));
     }
@@ -99,7 +99,7 @@ impl TrainSampling {
         if let Some(late) = &self.late_jitter {
             if !(late.after_passes.is_finite() && late.after_passes >= 0.0) {
                 return Err(StageError::Params(format!(
-                    "sampling.late_jitter.after_passes = {} must be finite and >= 0",
+                    "`sampling.late_jitter.after_passes`: {} must be finite and >= 0",
                     late.after_passes
                 )));
             }
