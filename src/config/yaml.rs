@@ -243,15 +243,7 @@ pub fn show_json(v: &Value) -> String {
 
 fn write_json(v: &Value, out: &mut String) {
     match v {
-        Value::Number(n) if n.is_f64() => {
-            let x = n.as_f64().unwrap_or(f64::NAN);
-            let f = x as f32;
-            if f.is_finite() && f64::from(f) == x {
-                out.push_str(&format!("{f:?}"));
-            } else {
-                out.push_str(&n.to_string());
-            }
-        }
+        Value::Number(n) => out.push_str(&stages::params_doc::show_number(n)),
         Value::Array(items) => {
             out.push('[');
             for (i, item) in items.iter().enumerate() {

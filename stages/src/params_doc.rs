@@ -260,17 +260,17 @@ pub fn show(v: &Value) -> String {
                 .collect::<Vec<_>>()
                 .join(", ")
         ),
-        // An f32 reaches JSON as its f64 value (0.1 -> 0.10000000149011612): show the f32.
-        Value::Number(n) if n.is_f64() => {
-            let x = n.as_f64().unwrap_or(f64::NAN);
-            let f = x as f32;
-            if f.is_finite() && f64::from(f) == x {
-                format!("{f:?}")
-            } else {
-                format!("{x:?}")
-            }
-        }
+        Value::Number(n) => show_number(n),
         other => other.to_string(),
+    }
+}
+
+/// A number as written: an f32 parameter reaches JSON as its f64 value (0.1 ->
+/// 0.10000000149011612), so a float that is exactly an f32 shows as that f32 (`0.1`).
+pub fn show_number(n: &serde_json::Number) -> String {
+    match n.as_f64().filter(|_| n.is_f64()) {
+        Some(x) if (x as f32).is_finite() && f64::from(x as f32) == x => format!("{:?}", x as f32),
+        _ => n.to_string(),
     }
 }
 

@@ -143,11 +143,13 @@ pub trait Stage: Send + Sync {
     /// Every parameter with its type, default and doc, in the order the params struct declares
     /// them ([`crate::params_doc`]).
     fn param_docs(&self) -> Vec<ParamDoc>;
+    /// The parameters of earlier layouts: `(old dotted path, new path [(note)] or (note))`.
+    fn moved_params(&self) -> &'static [(&'static str, &'static str)];
     /// Where a parameter of an earlier layout went: the new key (or a hint) for the old dotted
     /// `path` (`train.lr` -> `optimiser.lr`), `None` when `path` was never moved.
-    fn moved_param(&self, path: &str) -> Option<String>;
-    /// The table [`Stage::moved_param`] reads: `(old dotted path, new path [(note)] or (note))`.
-    fn moved_params(&self) -> &'static [(&'static str, &'static str)];
+    fn moved_param(&self, path: &str) -> Option<String> {
+        crate::params_doc::moved(self.moved_params(), path)
+    }
     /// Checks full parameters (defaults filled in) and returns their canonical form.
     fn canonical_params(&self, params: &Value) -> Result<Value>;
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables>;
@@ -241,9 +243,6 @@ impl<T: TypedStage> Stage for T {
     }
     fn param_docs(&self) -> Vec<ParamDoc> {
         crate::params_doc::docs::<T::Params>()
-    }
-    fn moved_param(&self, path: &str) -> Option<String> {
-        crate::params_doc::moved(T::MOVED, path)
     }
     fn moved_params(&self) -> &'static [(&'static str, &'static str)] {
         T::MOVED
