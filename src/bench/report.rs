@@ -259,7 +259,10 @@ fn units(ms: &[&MetricInfo]) -> String {
     }
     let parts: Vec<String> = by_unit
         .iter()
-        .map(|(u, labels)| format!("{} in {u}", and_list(labels)))
+        .map(|(u, labels)| match *u {
+            "" => format!("{} as plain numbers", and_list(labels)),
+            u => format!("{} in {u}", and_list(labels)),
+        })
         .collect();
     parts.join(", ")
 }
@@ -522,7 +525,7 @@ mod tests {
         let spec = stages::kinds::find("evaluate").unwrap().scores().unwrap();
         assert_eq!(
             units(&metrics(spec, spec.per_run)),
-            "mIoU, Acc, PQ, PQ (panopticapi), delta<1.25 and delta<1.25 vs exact depth in %, depth RMSE, depth RMSE inside regions, depth RMSE vs exact depth and depth RMSE vs exact depth inside regions in m"
+            "mIoU, Acc, PQ, PQ (panopticapi), delta<1.25, delta<1.25 vs exact depth, review recall@5% and review top-20 region precision in %, depth RMSE, depth RMSE inside regions, depth RMSE vs exact depth and depth RMSE vs exact depth inside regions in m, review AUROC and review per-frame rank corr. as plain numbers"
         );
     }
 }

@@ -190,7 +190,8 @@ impl Write for HashingFile {
 /// the row groups that hold the rows are decoded.
 pub struct StoredTable {
     path: PathBuf,
-    file: File,
+    file: Arc<File>,
+    len: u64,
     meta: ArrowReaderMetadata,
     /// First row of each row group, and the row count at the end.
     starts: Vec<usize>,
@@ -199,6 +200,7 @@ pub struct StoredTable {
 impl StoredTable {
     pub fn open(path: &Path) -> Result<Self, CodecError> {
         let file = File::open(path).map_err(ParquetError::from)?;
+        let len = file.metadata().map_err(ParquetError::from)?.len();
         let meta = ArrowReaderMetadata::load(&file, Default::default())?;
         let mut starts = vec![0usize];
         for g in meta.metadata().row_groups() {
@@ -206,7 +208,8 @@ impl StoredTable {
         }
         Ok(Self {
             path: path.to_path_buf(),
-            file,
+            file: Arc::new(file),
+            len,
             meta,
             starts,
         })
@@ -222,7 +225,7 @@ impl StoredTable {
             .filter(|&g| self.starts[g] < range.end && self.starts[g + 1] > range.start)
             .collect();
         let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(
-            self.file.try_clone().map_err(ParquetError::from)?,
+            Positional(self.file.clone(), self.len),
             self.meta.clone(),
         )
         .with_row_groups(groups.clone())
@@ -258,6 +261,51 @@ impl StoredTable {
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(RecordBatch::try_new(out_schema, cols)?)
+    }
+}
+
+/// A file read by position (`pread`), never by seeking: parquet's reader for `File` seeks a
+/// cloned handle, and clones share one offset, so readers of one table on several threads
+/// would read each other's bytes.
+/// The file and its length, taken when the table was opened.
+struct Positional(Arc<File>, u64);
+
+impl parquet::file::reader::Length for Positional {
+    fn len(&self) -> u64 {
+        self.1
+    }
+}
+
+/// A [`std::io::Read`] at a position of a [`Positional`] file.
+struct PositionalRead {
+    file: Arc<File>,
+    at: u64,
+}
+
+impl std::io::Read for PositionalRead {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        use std::os::unix::fs::FileExt;
+        let n = self.file.read_at(buf, self.at)?;
+        self.at += n as u64;
+        Ok(n)
+    }
+}
+
+impl parquet::file::reader::ChunkReader for Positional {
+    type T = std::io::BufReader<PositionalRead>;
+
+    fn get_read(&self, start: u64) -> parquet::errors::Result<Self::T> {
+        Ok(std::io::BufReader::new(PositionalRead {
+            file: self.0.clone(),
+            at: start,
+        }))
+    }
+
+    fn get_bytes(&self, start: u64, length: usize) -> parquet::errors::Result<bytes::Bytes> {
+        use std::os::unix::fs::FileExt;
+        let mut buf = vec![0u8; length];
+        self.0.read_exact_at(&mut buf, start)?;
+        Ok(buf.into())
     }
 }
 
@@ -337,6 +385,31 @@ mod tests {
         assert_eq!(frames.values().to_vec(), vec![14, 15, 16, 17]);
         assert_eq!(t.read(0..40, None).unwrap(), b);
         assert_eq!(t.read(40..40, None).unwrap().num_rows(), 0);
+    }
+
+    /// Rows read on several threads at once are the rows read one at a time (a reader that
+    /// seeks a shared handle reads another thread's bytes: "Required field type_ is missing").
+    #[test]
+    fn rows_read_on_many_threads_at_once_are_the_same_rows() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.parquet");
+        let b = images(24, 4 << 20);
+        let mut enc = TableEncoder::new(HashingFile::create(&path).unwrap(), b.schema()).unwrap();
+        enc.write_whole(&b).unwrap();
+        enc.finish().unwrap().finish().unwrap();
+        let t = StoredTable::open(&path).unwrap();
+        std::thread::scope(|s| {
+            for k in 0..6 {
+                let t = &t;
+                let b = &b;
+                s.spawn(move || {
+                    for round in 0..8 {
+                        let r = (k * 7 + round * 5) % 24;
+                        assert_eq!(t.read(r..r + 1, None).unwrap(), b.slice(r, 1), "row {r}");
+                    }
+                });
+            }
+        });
     }
 
     #[test]

@@ -167,6 +167,18 @@ impl ImagePlan {
         self.hits.is_empty()
     }
 
+    /// Row `r` of a `ray_intervals` batch, only the intervals (`hits`, `t_in`, `t_out`,
+    /// `prim`; the sky and first-hit columns are left empty), checked as [`ImagePlan::from_row`]
+    /// checks them.
+    pub fn intervals_from_row(
+        batch: &RecordBatch,
+        r: usize,
+        pixels: usize,
+        prim_count: usize,
+    ) -> Result<ImagePlan> {
+        Self::read_row(batch, r, pixels, prim_count, false)
+    }
+
     /// Row `r` of a `ray_intervals` batch (the per-pixel columns the sampler reads; the
     /// first-hit columns are left empty), every length checked against `pixels` and the ids
     /// against `prim_count`.
@@ -176,13 +188,27 @@ impl ImagePlan {
         pixels: usize,
         prim_count: usize,
     ) -> Result<ImagePlan> {
+        Self::read_row(batch, r, pixels, prim_count, true)
+    }
+
+    fn read_row(
+        batch: &RecordBatch,
+        r: usize,
+        pixels: usize,
+        prim_count: usize,
+        with_sky: bool,
+    ) -> Result<ImagePlan> {
         const T: &str = "ray_intervals";
         let hits = tables::get_list::<UInt8Type>(batch, T, "hits")?.row(r);
-        let (sky0, sky1) = (
-            tables::get_list::<Float32Type>(batch, T, "sky_t0")?.row(r),
-            tables::get_list::<Float32Type>(batch, T, "sky_t1")?.row(r),
-        );
-        if hits.len() != pixels || sky0.len() != pixels || sky1.len() != pixels {
+        let (sky0, sky1): (&[f32], &[f32]) = if with_sky {
+            (
+                tables::get_list::<Float32Type>(batch, T, "sky_t0")?.row(r),
+                tables::get_list::<Float32Type>(batch, T, "sky_t1")?.row(r),
+            )
+        } else {
+            (&[], &[])
+        };
+        if hits.len() != pixels || (with_sky && (sky0.len() != pixels || sky1.len() != pixels)) {
             return Err(StageError::Input(format!(
                 "{T} row {r}: per-pixel arrays do not have {pixels} entries"
             )));

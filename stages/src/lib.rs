@@ -25,6 +25,7 @@ pub mod model;
 pub mod params_doc;
 pub mod pngio;
 pub mod report;
+pub mod review;
 pub mod rng;
 pub mod sampling;
 pub mod scene;

@@ -106,6 +106,12 @@ impl Table {
         self.rows(i..i + 1, None)
     }
 
+    /// The row of each image of a per-image table, by (frame, camera), read from those two
+    /// columns alone.
+    pub fn image_rows(&self) -> Result<std::collections::HashMap<(u32, u8), usize>> {
+        crate::tables::frame_camera_index(&self.columns(&["frame", "camera"])?, &self.name)
+    }
+
     /// Every row, only `columns`: e.g. the keys of a per-image table without its pixels.
     pub fn columns(&self, columns: &[&str]) -> Result<RecordBatch> {
         self.rows(0..self.num_rows(), Some(columns))

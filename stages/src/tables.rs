@@ -226,3 +226,50 @@ mod tests {
         assert!(get_prim::<UInt32Type>(&batch, "t", "zzz").is_err());
     }
 }
+
+/// Writes `batch` as CSV (a header of column names, nulls empty, text quoted where it holds a
+/// comma, quote or line break) to `path`, creating its directory.
+pub fn write_csv(batch: &RecordBatch, path: &std::path::Path) -> Result<()> {
+    use arrow::util::display::{ArrayFormatter, FormatOptions};
+    use std::fmt::Write as _;
+    let fail = |e: String| StageError::Failed(format!("writing {}: {e}", path.display()));
+    let quote = |s: &str| {
+        if s.contains([',', '"', '\n', '\r']) {
+            format!("\"{}\"", s.replace('"', "\"\""))
+        } else {
+            s.to_string()
+        }
+    };
+    let schema = batch.schema();
+    let mut out: String = schema
+        .fields()
+        .iter()
+        .map(|f| quote(f.name()))
+        .collect::<Vec<_>>()
+        .join(",");
+    out.push('\n');
+    let options = FormatOptions::default().with_null("");
+    let formatters = batch
+        .columns()
+        .iter()
+        .map(|c| ArrayFormatter::try_new(c.as_ref(), &options))
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|e| fail(e.to_string()))?;
+    for r in 0..batch.num_rows() {
+        for (i, f) in formatters.iter().enumerate() {
+            if i > 0 {
+                out.push(',');
+            }
+            let cell = f
+                .value(r)
+                .try_to_string()
+                .map_err(|e| fail(e.to_string()))?;
+            let _ = write!(out, "{}", quote(&cell));
+        }
+        out.push('\n');
+    }
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| fail(e.to_string()))?;
+    }
+    std::fs::write(path, out).map_err(|e| fail(e.to_string()))
+}

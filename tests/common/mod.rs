@@ -31,12 +31,15 @@ stages:
   render:
     uses: render
     inputs: {scene: scene, rays: rays, train: train}
+  review:
+    uses: review
+    inputs: {scene: scene, rays: rays, render: render}
   evaluate:
     uses: evaluate
-    inputs: {scene: scene, render: render}
+    inputs: {scene: scene, render: render, review: review}
   report:
     uses: report
-    inputs: {scene: scene, evaluate: evaluate, render: render, train: train}
+    inputs: {scene: scene, evaluate: evaluate, render: render, train: train, review: review}
 ";
 
 pub struct Workspace {

@@ -34,6 +34,27 @@ impl Camera {
         self.cam_to_world.translation
     }
 
+    /// Whether `other` maps pixels to the same camera-frame rays (poses aside).
+    pub fn same_pixels(&self, other: &Camera) -> bool {
+        (
+            self.width,
+            self.height,
+            self.fx,
+            self.fy,
+            self.cx,
+            self.cy,
+            self.lens,
+        ) == (
+            other.width,
+            other.height,
+            other.fx,
+            other.fy,
+            other.cx,
+            other.cy,
+            other.lens,
+        )
+    }
+
     /// Unit direction, in the camera frame, through image point `(u, v)`; `None` outside the
     /// lens (never for a pinhole).
     pub fn dir_cam(&self, u: f64, v: f64) -> Option<DVec3> {

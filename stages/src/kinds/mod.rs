@@ -10,6 +10,7 @@ pub mod motion_stereo;
 pub mod registry;
 pub mod render;
 pub mod report;
+pub mod review;
 pub mod stereo_depth;
 pub mod synthetic_scene;
 pub mod testing;

@@ -1,8 +1,8 @@
 //! Every stage kind, by name. The runner knows stages only through this.
 
 use super::{
-    aggregate, evaluate, intersect, kitti360_scene, motion_stereo, render, report, stereo_depth,
-    synthetic_scene, testing, train,
+    aggregate, evaluate, intersect, kitti360_scene, motion_stereo, render, report, review,
+    stereo_depth, synthetic_scene, testing, train,
 };
 use crate::stage::Stage;
 
@@ -16,6 +16,7 @@ pub fn registry() -> Vec<Box<dyn Stage>> {
         Box::new(intersect::Intersect),
         Box::new(train::Train),
         Box::new(render::Render),
+        Box::new(review::Review),
         Box::new(evaluate::Evaluate),
         Box::new(report::Report),
         Box::new(aggregate::Aggregate),

@@ -104,12 +104,6 @@ impl Default for RenderParams {
 
 pub struct Render;
 
-/// Whether two cameras map pixels to the same camera-frame rays (poses aside).
-fn same_pixels(a: &Camera, b: &Camera) -> bool {
-    (a.width, a.height, a.fx, a.fy, a.cx, a.cy, a.lens)
-        == (b.width, b.height, b.fx, b.fy, b.cx, b.cy, b.lens)
-}
-
 /// The sequence name of the scene (`scene` when it has none).
 fn sequence(inputs: &Inputs) -> Result<String> {
     let seq = tables::get_strings(
@@ -366,7 +360,7 @@ impl TypedStage for Render {
             let input = images.row(*input)?;
             let rgb = tables::get_binary(&input, "images", "rgb")?.value(0);
             let mask = match masks.get(&camera) {
-                Some((c, m)) if same_pixels(c, cam) => m,
+                Some((c, m)) if c.same_pixels(cam) => m,
                 _ => {
                     masks.insert(camera, (cam.clone(), lens_mask(cam)));
                     &masks[&camera].1

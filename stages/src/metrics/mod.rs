@@ -21,6 +21,7 @@
 pub mod confusion;
 pub mod consistency;
 pub mod depth;
+pub mod detection;
 pub mod error;
 pub mod panoptic;
 pub mod scores;

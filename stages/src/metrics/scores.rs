@@ -22,6 +22,17 @@ const fn pct(name: &'static str, label: &'static str) -> MetricInfo {
     }
 }
 
+const fn figure(name: &'static str, label: &'static str) -> MetricInfo {
+    MetricInfo {
+        name,
+        label,
+        unit: "",
+        scale: 1.0,
+        decimals: 3,
+        semantic: true,
+    }
+}
+
 const fn metres(name: &'static str, label: &'static str) -> MetricInfo {
     MetricInfo {
         name,
@@ -80,6 +91,14 @@ pub const SCORES: ScoreSpec = ScoreSpec {
             "depth_rmse_exact_interior",
             "depth RMSE vs exact depth inside regions",
         ),
+        figure("review_auroc", "review AUROC"),
+        pct("review_recall_5pct", "review recall@5%"),
+        pct("review_top20_precision", "review top-20 region precision"),
+        figure("review_frame_rank_corr", "review per-frame rank corr."),
+        figure("confidence_auroc", "confidence AUROC"),
+        pct("confidence_recall_5pct", "confidence recall@5%"),
+        pct("confidence_top20_precision", "confidence top-20 region precision"),
+        figure("confidence_frame_rank_corr", "confidence per-frame rank corr."),
     ],
     headline: "miou",
     per_run: &[
@@ -93,6 +112,10 @@ pub const SCORES: ScoreSpec = ScoreSpec {
         "depth_rmse_exact",
         "depth_delta_1_25_exact",
         "depth_rmse_exact_interior",
+        "review_auroc",
+        "review_recall_5pct",
+        "review_top20_precision",
+        "review_frame_rank_corr",
     ],
     per_baseline: &[
         "miou",

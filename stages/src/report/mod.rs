@@ -5,4 +5,4 @@ pub mod pictures;
 pub mod plots;
 
 pub use pictures::{depth_colors, depth_error_colors, error_colors, panoptic_colors, png_data_uri};
-pub use plots::training_svg;
+pub use plots::{review_svg, training_svg};

@@ -32,6 +32,7 @@ mod depth_bins;
 mod images;
 mod json;
 mod params;
+mod review;
 mod sums;
 
 use depth_bins::{depth_bin_keys, BinKey};
@@ -379,13 +380,17 @@ impl Evaluation {
     }
 
     /// The `metrics`, `class_iou`, `camera_metrics` and `camera_class_iou` tables.
-    fn score_tables(&self) -> Result<[RecordBatch; 4]> {
+    /// `review`: the review's figures, rows of `panoptic_nerf` in `metrics`.
+    fn score_tables(&self, review: &[(String, Option<f64>)]) -> Result<[RecordBatch; 4]> {
         let mut rows = MetricRows::default();
         let mut ciou = ClassRows::default();
         self.all.scores(
             |m, k, v| rows.push(None, m, k, v),
             |m, c| ciou.push(None, m, c),
         );
+        for (k, v) in review {
+            rows.push(None, "panoptic_nerf", k, *v);
+        }
         let mut by_model = MetricRows::default();
         let mut model_ciou = ClassRows::default();
         for (&model, group) in &self.by_model {
@@ -412,9 +417,8 @@ impl Evaluation {
 impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
-    // 9: `cameras` defaults to the scene's cameras but the right one (the same scores for the
-    // same images).
-    const VERSION: u32 = 9;
+    // 10: with a `review` input, the review's figures against GT in `metrics`.
+    const VERSION: u32 = 10;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -437,6 +441,12 @@ impl TypedStage for Evaluate {
             tables: &["label_maps"],
             optional: false,
             doc: "rendered labels",
+        },
+        InputSlot {
+            name: "review",
+            tables: &["review_maps", "review_regions"],
+            optional: true,
+            doc: "the review: how well its score finds the wrong labels (review_* metrics)",
         },
     ];
     const SCORES: Option<&'static ScoreSpec> = Some(&SCORES);
@@ -510,7 +520,8 @@ impl TypedStage for Evaluate {
             run.add_frame(&maps, c, &prims, &bvh)?;
         }
         run.add_consistency(&maps, &eval, p.mc_distance)?;
-        let [metrics, class_iou, camera_metrics, camera_class_iou] = run.score_tables()?;
+        let review = review::review_figures(inputs, |c| p.scores(c), progress)?;
+        let [metrics, class_iou, camera_metrics, camera_class_iou] = run.score_tables(&review)?;
         let depth_breakdown = run.depth_table()?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;

@@ -21,6 +21,8 @@ use crate::stage::{
 };
 use crate::{labels, tables};
 
+mod review;
+
 #[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct ReportParams {
@@ -32,6 +34,8 @@ pub struct ReportParams {
     pub zoom: u32,
     /// Depth pictures map 0..depth_range metres onto the colour scale.
     pub depth_range: f32,
+    /// The review section pictures the worst region of this many queue entries.
+    pub review_regions: usize,
 }
 
 impl Default for ReportParams {
@@ -41,6 +45,7 @@ impl Default for ReportParams {
             max_frames: 8,
             zoom: 2,
             depth_range: 50.0,
+            review_regions: 8,
         }
     }
 }
@@ -672,7 +677,8 @@ fn per_class_iou(
 impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
-    const VERSION: u32 = 7;
+    // 8: the review section; loss curves on a symlog axis where a term is zero or negative.
+    const VERSION: u32 = 8;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
@@ -706,6 +712,17 @@ impl TypedStage for Report {
             tables: &["train_log"],
             optional: true,
             doc: "training log for the loss curves",
+        },
+        InputSlot {
+            name: "review",
+            tables: &[
+                "review_maps",
+                "review_regions",
+                "review_queue",
+                "review_frames",
+            ],
+            optional: true,
+            doc: "the review: its top regions as pictures, the per-frame score and coverage",
         },
     ];
     const OUTPUTS: &'static [&'static str] = &["report_files"];
@@ -745,6 +762,10 @@ impl TypedStage for Report {
                 page.html.push_str("<h2>Training</h2>");
                 page.html.push_str(&svg);
             }
+        }
+        if let Some(section) = review::review_section(inputs, p.zoom, p.review_regions)? {
+            page.html.push_str(&section.html);
+            page.md.push_str(&section.md);
         }
         page.pictures(p, inputs, &present, progress)?;
         page.html.push_str("</table></body></html>\n");
