@@ -145,6 +145,10 @@ pub enum Command {
         /// Hash every cached file, even those unchanged since they were last verified.
         #[arg(long)]
         verify: bool,
+        /// Compute stale stages from scratch, never by updating their previous run (what an
+        /// annotation edit otherwise does: see `pipe kinds` for the kinds that update).
+        #[arg(long)]
+        cold: bool,
         /// Run only this scene of a pipeline with `scenes:` (no dataset stages). Repeatable.
         #[arg(long = "scene", value_name = "NAME")]
         scene: Vec<String>,
@@ -264,6 +268,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             jobs,
             keep_going,
             verify,
+            cold,
             scene,
             scenes,
             executor,
@@ -291,6 +296,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                 jobs,
                 keep_going,
                 verify,
+                cold,
             };
             let several = match &opts.scenes {
                 runner::Scenes::Named(list) => list.len() > 1,

@@ -11,6 +11,12 @@ use std::collections::BTreeMap;
 
 use serde_json::{json, Value};
 
+/// Pseudo input slot under which the digest of a stage's external files enters its key.
+pub const FILES_SLOT: &str = "@files";
+/// Pseudo input slot under which an updated entry's key holds its parent's key (see
+/// `runner::parent`).
+pub const PARENT_SLOT: &str = "@parent";
+
 /// Hex blake3 of the canonical description of a stage run.
 pub fn stage_key(
     kind: &str,

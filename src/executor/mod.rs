@@ -99,6 +99,9 @@ pub fn task_args(p: &Pipeline, opts: &ExecOptions) -> Result<Vec<String>, Execut
     if opts.run.verify {
         args.push("--verify".into());
     }
+    if opts.run.cold {
+        args.push("--cold".into());
+    }
     if opts.run.keep_going {
         args.push("--keep-going".into());
     }

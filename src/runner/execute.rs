@@ -10,15 +10,16 @@ use std::{
     time::Instant,
 };
 
-use stages::{Inputs, TableSet, Tables};
+use stages::{Inputs, Previous, TableSet, Tables};
 
 use super::{
     error::StageFailure,
+    parent::Parent,
     progress::{Bars, StageBar},
 };
 use crate::{
     config::Pipeline,
-    store::{unix_now, Entry, Manifest, PendingEntry, Store, StoreError},
+    store::{unix_now, Entry, InputInfo, Manifest, PendingEntry, Store, StoreError},
 };
 
 /// The manifests of a gathered slot's stage in every scene: (scene, manifest).
@@ -42,6 +43,10 @@ pub(super) struct Job {
     pub upstream: Vec<(String, Box<Manifest>)>,
     /// (slot, the gathered stage's manifest in every scene).
     pub gathered: Vec<(String, SceneManifests)>,
+    /// What the key was computed from, for the manifest.
+    pub inputs: BTreeMap<String, InputInfo>,
+    /// The entry to update instead of computing from scratch.
+    pub parent: Option<Parent>,
     /// The runner's time on this stage before the job started, seconds.
     pub pre_overhead: f64,
     /// Printed once the lock is held and the body starts.
@@ -129,11 +134,28 @@ impl Job {
             Ok(p) => p,
             Err(e) => return self.failed(e.into()),
         };
+        let previous = match self.load_parent() {
+            Ok(prev) => prev,
+            Err(e) => return self.failed(e),
+        };
         let load_s = ov1.elapsed().as_secs_f64();
         reset_peak_rss();
         let started = unix_now();
         let (w0, c0) = (Instant::now(), cpu_seconds());
-        let result = execute(&self.p, self.i, &ins, &pending, &self.bar);
+        let previous = previous.as_ref().map(|(outputs, inputs, parent)| Previous {
+            outputs,
+            inputs: inputs.iter().map(|(k, v)| (k.clone(), v)).collect(),
+            changed: &parent.changed,
+        });
+        let result = execute(
+            &self.p,
+            self.i,
+            &ins,
+            previous.as_ref(),
+            &pending,
+            &self.bar,
+        );
+        drop(previous);
         let body = Measured {
             started,
             wall: w0.elapsed().as_secs_f64(),
@@ -177,12 +199,28 @@ impl Job {
         Ok(ins)
     }
 
+    /// The parent's outputs and inputs, when this job updates one.
+    #[allow(clippy::type_complexity)]
+    fn load_parent(
+        &self,
+    ) -> Result<Option<(TableSet, BTreeMap<String, TableSet>, &Parent)>, StageFailure> {
+        let Some(parent) = &self.parent else {
+            return Ok(None);
+        };
+        let outputs = load_cached(&self.store, &self.loaded, &parent.manifest)?;
+        let mut inputs = BTreeMap::new();
+        for (slot, m) in &parent.inputs {
+            inputs.insert(slot.clone(), load_cached(&self.store, &self.loaded, m)?);
+        }
+        Ok(Some((outputs, inputs, parent)))
+    }
+
     /// Publishes the body's tables (and the ones it streamed into `pending`) as the entry of
     /// this job's key.
     fn publish(
         &self,
         pending: PendingEntry,
-        tables: Tables,
+        (tables, redone): (Tables, Option<String>),
         body: &Measured,
     ) -> Result<Manifest, StageFailure> {
         let s = &self.p.stages[self.i];
@@ -192,7 +230,7 @@ impl Job {
             version: s.kind.version(),
             stage: s.name.clone(),
             params: s.params.clone(),
-            inputs: BTreeMap::new(),
+            inputs: self.inputs.clone(),
             files: BTreeMap::new(),
             schemas: BTreeMap::new(),
             output_digest: String::new(),
@@ -202,6 +240,11 @@ impl Job {
             started: body.started,
             finished: unix_now(),
             tool_version: env!("CARGO_PKG_VERSION").into(),
+            parent: redone
+                .as_ref()
+                .and(self.parent.as_ref())
+                .map(|p| p.manifest.key.clone()),
+            redone,
         };
         let m = self
             .store
@@ -278,26 +321,33 @@ pub fn gather_tables(
     Ok(out)
 }
 
-/// Runs a stage body and checks its outputs against the kind's contract and schema files.
+/// Runs a stage body (or its update of `previous`) and checks its outputs against the kind's
+/// contract and schema files; with what an update computed again.
 fn execute(
     p: &Pipeline,
     i: usize,
     inputs: &BTreeMap<String, TableSet>,
+    previous: Option<&Previous>,
     pending: &PendingEntry,
     bar: &StageBar,
-) -> Result<Tables, StageFailure> {
+) -> Result<(Tables, Option<String>), StageFailure> {
     let s = &p.stages[i];
     let (stage, kind) = (s.name.clone(), s.kind.kind().to_string());
     let slots = inputs.iter().map(|(k, v)| (k.clone(), v)).collect();
     let adapter = bar.adapter();
-    let tables = s
-        .kind
-        .run(&s.params, &Inputs::new(slots).with_sinks(pending), &adapter)
-        .map_err(|source| StageFailure::Body {
-            stage: stage.clone(),
-            kind: kind.clone(),
-            source,
-        })?;
+    let inputs = Inputs::new(slots).with_sinks(pending);
+    let body = match previous {
+        Some(prev) => s
+            .kind
+            .update(&s.params, &inputs, prev, &adapter)
+            .map(|u| (u.tables, Some(u.redone))),
+        None => s.kind.run(&s.params, &inputs, &adapter).map(|t| (t, None)),
+    };
+    let (tables, redone) = body.map_err(|source| StageFailure::Body {
+        stage: stage.clone(),
+        kind: kind.clone(),
+        source,
+    })?;
     let mut written: BTreeSet<String> = tables.keys().cloned().collect();
     written.extend(pending.streamed());
     let declared: BTreeSet<String> = s.kind.outputs().iter().map(|t| t.to_string()).collect();
@@ -316,7 +366,7 @@ fn execute(
             message,
         })?;
     }
-    Ok(tables)
+    Ok((tables, redone))
 }
 
 fn cpu_seconds() -> f64 {

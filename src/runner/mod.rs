@@ -10,6 +10,7 @@
 mod error;
 mod execute;
 pub mod options;
+pub mod parent;
 pub mod plan;
 mod progress;
 pub mod report;
@@ -19,10 +20,11 @@ use std::{sync::Arc, time::Instant};
 
 use tokio::task::JoinSet;
 
+pub use crate::fingerprint::FILES_SLOT;
 pub use error::{RunError, StageFailure};
 pub use execute::gather_tables;
 pub use options::{RunOptions, Scenes};
-pub use plan::{check_scenes, external_digests, resolve, selection, Resolved, State, FILES_SLOT};
+pub use plan::{check_scenes, external_digests, resolve, selection, Resolved, State};
 pub use report::{fmt_bytes, fmt_secs, summary, text_table, Outcome, RunReport, StageReport};
 
 use crate::{

@@ -32,4 +32,6 @@ pub struct RunOptions {
     pub keep_going: bool,
     /// Hash every cached file even when unchanged since last verified.
     pub verify: bool,
+    /// Compute every stale stage from scratch: no stage updates its previous run.
+    pub cold: bool,
 }

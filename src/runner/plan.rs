@@ -10,11 +10,12 @@ use serde_json::Value;
 use super::{
     error::RunError,
     options::{RunOptions, Scenes},
+    parent::{describe, find_parent, updated_key, Found},
 };
 use crate::{
     config::{shorten, show_json, Pipeline},
     dag::Dag,
-    fingerprint,
+    fingerprint::{self, FILES_SLOT, PARENT_SLOT},
     store::{Entry, InputInfo, Manifest, Store},
 };
 
@@ -36,9 +37,6 @@ pub struct Resolved {
     /// The entry exists but failed verification.
     pub corrupt: bool,
 }
-
-/// Pseudo input slot under which the digest of a stage's external files enters its key.
-pub const FILES_SLOT: &str = "@files";
 
 /// Digests of the files outside the cache that stages read (`Stage::external_inputs`), by
 /// stage index. Contents are hashed, memoised by path, size, mtime and inode.
@@ -86,6 +84,7 @@ pub(super) fn key_of(
             InputInfo {
                 stage: "(files outside the cache)".into(),
                 digest: d.clone(),
+                key: None,
             },
         );
     }
@@ -96,6 +95,7 @@ pub(super) fn key_of(
             InputInfo {
                 stage: up.clone(),
                 digest: digests.get(&u)?.clone(),
+                key: None,
             },
         );
     }
@@ -118,6 +118,7 @@ pub(super) fn key_of(
             InputInfo {
                 stage: format!("{template}@* ({} scenes)", ups.len()),
                 digest: h.finalize().to_hex().to_string(),
+                key: None,
             },
         );
     }
@@ -185,7 +186,7 @@ pub(super) fn explain(
     }
     diff_params(&s.name, &rec.params, &s.params, &mut why);
     let slots: BTreeSet<&String> = rec.inputs.keys().chain(inputs.keys()).collect();
-    for slot in slots {
+    for slot in slots.into_iter().filter(|s| *s != PARENT_SLOT) {
         match (rec.inputs.get(slot), inputs.get(slot)) {
             (Some(a), Some(b)) if slot == FILES_SLOT && a.digest != b.digest => {
                 why.push("its input files changed".to_string())
@@ -243,6 +244,7 @@ pub fn resolve(
     let external = external_digests(p, store)?;
     let mut out: Vec<Option<Resolved>> = vec![None; p.stages.len()];
     let mut digests: HashMap<usize, String> = HashMap::new();
+    let mut fresh: HashMap<usize, Box<Manifest>> = HashMap::new();
     for &i in &dag.order {
         let r = match key_of(p, i, &digests, &external) {
             None => Resolved {
@@ -251,17 +253,63 @@ pub fn resolve(
                 state: State::Stale(waits_on(p, i, &digests)),
                 corrupt: false,
             },
-            Some((key, inputs)) => {
-                let (state, corrupt) = match store.check(&key, full_verify) {
-                    Entry::Valid(m) => {
-                        digests.insert(i, m.output_digest.clone());
-                        (State::Fresh(m), false)
-                    }
-                    Entry::Corrupt(why) => {
-                        (State::Stale(format!("cache entry corrupt: {why}")), true)
-                    }
-                    Entry::Missing => (State::Stale(explain(p, i, store, &key, &inputs)), false),
+            Some((key, mut inputs)) => {
+                let upstream = |slot: &str| {
+                    let up = p.stages[i].inputs.get(slot)?;
+                    fresh.get(&p.index_of(up)?).cloned()
                 };
+                for (slot, info) in inputs.iter_mut() {
+                    info.key = upstream(slot).map(|m| m.key);
+                }
+                let (mut key, mut state, mut corrupt) = match store.check(&key, full_verify) {
+                    Entry::Valid(m) => (key, State::Fresh(m), false),
+                    Entry::Corrupt(why) => {
+                        let why = format!("cache entry corrupt: {why}");
+                        (key, State::Stale(why), true)
+                    }
+                    Entry::Missing => {
+                        let why = explain(p, i, store, &key, &inputs);
+                        (key, State::Stale(why), false)
+                    }
+                };
+                // A stale stage that can update its last run: the updated entry may exist.
+                if let (State::Stale(why), false) = (&state, corrupt) {
+                    let found = find_parent(p, i, store, &inputs, &upstream);
+                    let parent = match &found {
+                        Ok(Found::Parent(parent)) => parent.manifest.key.clone(),
+                        Ok(Found::Current(parent)) => parent.clone(),
+                        Err(_) => String::new(),
+                    };
+                    match found {
+                        Ok(found) => {
+                            let (ukey, uinputs) = updated_key(p, i, &parent, &inputs);
+                            (state, corrupt) = match store.check(&ukey, full_verify) {
+                                Entry::Valid(m) => (State::Fresh(m), false),
+                                Entry::Corrupt(c) => {
+                                    (State::Stale(format!("cache entry corrupt: {c}")), true)
+                                }
+                                Entry::Missing => (
+                                    State::Stale(match found {
+                                        Found::Parent(par) => format!(
+                                            "{why}; will update entry {} ({})",
+                                            par.short(),
+                                            describe(&par.changed)
+                                        ),
+                                        Found::Current(_) => why.clone(),
+                                    }),
+                                    false,
+                                ),
+                            };
+                            (key, inputs) = (ukey, uinputs);
+                        }
+                        Err(Some(no)) => state = State::Stale(format!("{why}; from scratch: {no}")),
+                        Err(None) => {}
+                    }
+                }
+                if let State::Fresh(m) = &state {
+                    digests.insert(i, m.output_digest.clone());
+                    fresh.insert(i, m.clone());
+                }
                 Resolved {
                     key: Some(key),
                     inputs,

@@ -9,6 +9,8 @@ use serde::{Deserialize, Serialize};
 pub enum Outcome {
     Cached,
     Ran,
+    /// Updated a previous run's entry ([`stages::Stage::update`]).
+    Updated,
     Failed,
     Skipped,
     WouldRun,
@@ -109,6 +111,7 @@ pub fn summary(rep: &RunReport) -> String {
                 match r.outcome {
                     Outcome::Cached => "cached",
                     Outcome::Ran => "ran",
+                    Outcome::Updated => "updated",
                     Outcome::Failed => "FAILED",
                     Outcome::Skipped => "skipped",
                     Outcome::WouldRun => "would run",

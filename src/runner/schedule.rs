@@ -15,6 +15,7 @@ use super::{
     error::{RunError, StageFailure},
     execute::{Finished, Job, Loaded, SceneManifests},
     options::RunOptions,
+    parent::{describe, find_parent, short_key, updated_key, Found, Parent},
     plan::{explain, key_of},
     progress::Bars,
     report::{Outcome, RunReport, StageReport},
@@ -99,6 +100,8 @@ pub(super) struct Scheduler<'a> {
     stop: bool,
     /// Stages started so far, for `[n/total]`.
     started: usize,
+    /// The inputs (with their entries' keys, and the parent of an update) of stages started.
+    started_inputs: HashMap<usize, BTreeMap<String, InputInfo>>,
 }
 
 impl<'a> Scheduler<'a> {
@@ -142,6 +145,7 @@ impl<'a> Scheduler<'a> {
             in_flight: BTreeSet::new(),
             stop: false,
             started: 0,
+            started_inputs: HashMap::new(),
         }
     }
 
@@ -201,9 +205,37 @@ impl<'a> Scheduler<'a> {
             return Ok(true);
         }
         let ov0 = Instant::now();
-        let (key, inputs) = key_of(p, i, &self.digests, &self.external).expect("inputs done");
+        let (key, mut inputs) = key_of(p, i, &self.digests, &self.external).expect("inputs done");
+        self.attach_keys(i, &mut inputs);
         let Some(reason) = self.why_run(i, &key, &inputs, ov0)? else {
             return Ok(true);
+        };
+        let (key, reason, parent) = match self.parent_for(i, &inputs) {
+            Ok(Found::Parent(parent)) => {
+                let (ukey, uinputs) = parent.key(p, i, &inputs);
+                let why = format!(
+                    "{reason}; updating entry {} ({})",
+                    parent.short(),
+                    describe(&parent.changed)
+                );
+                inputs = uinputs;
+                let Some(why) = self.why_run(i, &ukey, &inputs, ov0)?.map(|_| why) else {
+                    return Ok(true);
+                };
+                (ukey, why, Some(parent))
+            }
+            Ok(Found::Current(parent)) => {
+                // The last run updated `parent` from these inputs: its entry, unless it is gone
+                // (then this computes from scratch).
+                let (ukey, uinputs) = updated_key(p, i, &parent, &inputs);
+                if let Entry::Valid(m) = self.store.check(&ukey, self.opts.verify) {
+                    self.cached(i, &ukey, &uinputs, m, ov0)?;
+                    return Ok(true);
+                }
+                (key, reason, None)
+            }
+            Err(Some(no)) => (key, format!("{reason}; from scratch: {no}"), None),
+            Err(None) => (key, reason, None),
         };
         if !self.selected.contains(&i) {
             return Err(RunError::NotUpToDate {
@@ -222,8 +254,39 @@ impl<'a> Scheduler<'a> {
         if self.in_flight.len() >= self.opts.jobs.max(1) {
             return Ok(false);
         }
-        self.start(i, key, reason, ov0, running);
+        self.started_inputs.insert(i, inputs);
+        self.start(i, key, reason, parent, ov0, running);
         Ok(true)
+    }
+
+    /// Adds to `inputs` of stage `i` the keys of the entries its slots read.
+    fn attach_keys(&self, i: usize, inputs: &mut BTreeMap<String, InputInfo>) {
+        let p = self.p;
+        for (slot, up) in &p.stages[i].inputs {
+            if let (Some(info), Some(m)) = (
+                inputs.get_mut(slot),
+                self.manifests.get(&p.index_of(up).expect("validated")),
+            ) {
+                info.key = Some(m.key.clone());
+            }
+        }
+    }
+
+    /// The entry stage `i` updates instead of computing from scratch (see [`find_parent`]).
+    fn parent_for(
+        &self,
+        i: usize,
+        inputs: &BTreeMap<String, InputInfo>,
+    ) -> Result<Found, Option<String>> {
+        if self.opts.cold || self.force.contains(&i) || self.repairs.contains_key(&i) {
+            return Err(None);
+        }
+        let p = self.p;
+        let current = |slot: &str| {
+            let up = p.stages[i].inputs.get(slot)?;
+            self.manifests.get(&p.index_of(up)?).cloned()
+        };
+        find_parent(p, i, self.store, inputs, &current)
     }
 
     /// Why stage `i` must run, or `None` when its entry is valid (then it is done: cached).
@@ -269,7 +332,13 @@ impl<'a> Scheduler<'a> {
         let p = self.p;
         self.digests.insert(i, m.output_digest.clone());
         if self.selected.contains(&i) {
-            let mut r = report(p, i, Outcome::Cached, "up to date".into(), Some(key.into()));
+            let why = match (&m.parent, &m.redone) {
+                (Some(parent), Some(redone)) => {
+                    format!("up to date (updated from {}: {redone})", short_key(parent))
+                }
+                _ => "up to date".into(),
+            };
+            let mut r = report(p, i, Outcome::Cached, why, Some(key.into()));
             r.overhead_s = ov0.elapsed().as_secs_f64();
             self.reports.insert(i, r);
             // Keep status explanations current even when the entry came from elsewhere.
@@ -292,6 +361,7 @@ impl<'a> Scheduler<'a> {
         i: usize,
         key: String,
         reason: String,
+        parent: Option<Parent>,
         ov0: Instant,
         running: &mut JoinSet<Finished>,
     ) {
@@ -300,9 +370,14 @@ impl<'a> Scheduler<'a> {
         self.started += 1;
         let reason = reason.replace('\n', " ");
         let running_line = format!(
-            "[{}/{}] running `{}` ({}): {reason}",
+            "[{}/{}] {} `{}` ({}): {reason}",
             self.started,
             self.selected.len(),
+            if parent.is_some() {
+                "updating"
+            } else {
+                "running"
+            },
             s.name,
             s.kind.kind()
         );
@@ -334,6 +409,8 @@ impl<'a> Scheduler<'a> {
             forced: self.force.contains(&i),
             upstream,
             gathered,
+            inputs: self.started_inputs.get(&i).cloned().unwrap_or_default(),
+            parent,
             pre_overhead: ov0.elapsed().as_secs_f64(),
             running_line,
             bar,
@@ -376,10 +453,16 @@ impl<'a> Scheduler<'a> {
                 if reused {
                     r.outcome = Outcome::Cached;
                     r.reason = "computed meanwhile by another run".into();
+                } else if let (Some(parent), Some(redone)) = (&m.parent, &m.redone) {
+                    r.outcome = Outcome::Updated;
+                    r.reason = format!("updated from {}: {redone}", short_key(parent));
                 }
                 let key = r.key.clone().unwrap_or_default();
-                let (_, inputs) =
-                    key_of(self.p, i, &self.digests, &self.external).expect("inputs done");
+                let inputs = self.started_inputs.remove(&i).unwrap_or_else(|| {
+                    key_of(self.p, i, &self.digests, &self.external)
+                        .expect("inputs done")
+                        .1
+                });
                 m.inputs = inputs.clone();
                 let rec = run_record(self.p, i, key, inputs);
                 self.store.save_run_record(&self.p.stages[i].name, rec)?;

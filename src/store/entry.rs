@@ -24,11 +24,14 @@ use super::{
 };
 use crate::{error::IoContext, fingerprint};
 
-/// An input of a run: which stage fed the slot, and the digest of what it wrote.
+/// An input of a run: which stage fed the slot, the digest of what it wrote and, where known,
+/// the key of that entry (what lets a later run find the inputs of this one).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct InputInfo {
     pub stage: String,
     pub digest: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub key: Option<String>,
 }
 
 /// `manifest.json` of a cache entry.
@@ -54,6 +57,13 @@ pub struct Manifest {
     pub started: f64,
     pub finished: f64,
     pub tool_version: String,
+    /// The entry this one was updated from ([`stages::Stage::update`]); none when computed
+    /// from scratch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub parent: Option<String>,
+    /// What that update computed again (`12 of 128 images`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub redone: Option<String>,
 }
 
 /// What a look-up of a key found.
@@ -426,6 +436,8 @@ mod tests {
             started: 0.0,
             finished: 0.0,
             tool_version: "test".into(),
+            parent: None,
+            redone: None,
         }
     }
 

@@ -35,6 +35,7 @@ pub mod stream;
 pub mod tables;
 
 pub use stage::{
-    InputSlot, Inputs, MemoryInputs, MethodInfo, MetricInfo, NoProgress, Progress, Result,
-    ScoreSpec, Stage, StageError, Table, TableSet, TableWriter, Tables, TypedStage,
+    Changed, InputSlot, Inputs, MemoryInputs, MethodInfo, MetricInfo, NoProgress, Previous,
+    Progress, Result, ScoreSpec, Stage, StageError, Table, TableSet, TableWriter, Tables,
+    TypedStage, Updated,
 };

@@ -3,7 +3,11 @@
 //! ordering and timing. Every output table has its Arrow schema in `data_schema/<table>.json`
 //! ([`crate::schema`]).
 
-use std::{collections::BTreeMap, path::Path, path::PathBuf};
+use std::{
+    collections::{BTreeMap, BTreeSet},
+    path::Path,
+    path::PathBuf,
+};
 
 use arrow::record_batch::RecordBatch;
 use schemars::JsonSchema;
@@ -128,6 +132,52 @@ impl MemoryInputs {
     }
 }
 
+/// Per input slot, the names of the tables (among those the slot reads) whose bytes differ
+/// between a previous run's inputs and the current ones.
+pub type Changed = BTreeMap<String, BTreeSet<String>>;
+
+/// The previous run of a stage instance, offered by the runner for [`Stage::update`]: the same
+/// kind, code version and params, computed from inputs that differ only in `changed`.
+pub struct Previous<'a> {
+    /// Its output tables.
+    pub outputs: &'a TableSet,
+    /// The inputs it was computed from, by slot.
+    pub inputs: BTreeMap<String, &'a TableSet>,
+    pub changed: &'a Changed,
+}
+
+impl Previous<'_> {
+    /// Table `table` of the previous run's input `slot`.
+    pub fn input(&self, slot: &str, table: &str) -> Result<&Table> {
+        self.inputs
+            .get(slot)
+            .and_then(|t| t.get(table))
+            .ok_or_else(|| {
+                StageError::Input(format!(
+                    "the previous run has no input table `{slot}.{table}`"
+                ))
+            })
+    }
+
+    /// Output table `table` of the previous run.
+    pub fn output(&self, table: &str) -> Result<&Table> {
+        self.outputs.get(table).ok_or_else(|| {
+            StageError::Input(format!("the previous run has no output table `{table}`"))
+        })
+    }
+
+    /// Whether table `table` of input `slot` changed.
+    pub fn changed(&self, slot: &str, table: &str) -> bool {
+        self.changed.get(slot).is_some_and(|t| t.contains(table))
+    }
+}
+
+/// The outputs of an update and what it computed again, for the run log (`12 of 128 images`).
+pub struct Updated {
+    pub tables: Tables,
+    pub redone: String,
+}
+
 /// The type-erased interface the runner sees. Implement [`TypedStage`] instead.
 pub trait Stage: Send + Sync {
     /// Registry name, used in pipeline.yaml `uses:`.
@@ -165,6 +215,20 @@ pub trait Stage: Send + Sync {
     /// The parameter (dotted path inside the params) that sets how much work the stage does,
     /// e.g. training iterations: what a time-against-error sweep varies.
     fn budget_param(&self) -> Option<&'static str>;
+    /// Whether this kind can update a previous run's outputs (see [`Stage::update`]).
+    fn updates(&self) -> bool;
+    /// Whether [`Stage::update`] can start from a previous run whose inputs differ from the
+    /// current ones in `changed`; if not, why (the runner then computes from scratch).
+    fn can_update(&self, params: &Value, changed: &Changed) -> std::result::Result<(), String>;
+    /// Like [`Stage::run`], starting from `previous` and redoing only what its changed inputs
+    /// can change. The same previous run and inputs give the same bytes.
+    fn update(
+        &self,
+        params: &Value,
+        inputs: &Inputs,
+        previous: &Previous,
+        progress: &dyn Progress,
+    ) -> Result<Updated>;
 }
 
 /// A stage kind with typed parameters. Params are a serde struct with `#[serde(default,
@@ -183,6 +247,8 @@ pub trait TypedStage: Send + Sync {
     /// Parameters that moved: `(old dotted path, new path or hint)`; an old path matches itself
     /// and every path below it, the longest match wins (see [`Stage::moved_param`]).
     const MOVED: &'static [(&'static str, &'static str)] = &[];
+    /// See [`Stage::updates`]; a kind that sets it implements [`TypedStage::update`].
+    const UPDATES: bool = false;
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -205,6 +271,27 @@ pub trait TypedStage: Send + Sync {
     /// Files outside the cache the stage reads (see [`Stage::external_inputs`]).
     fn external_inputs(&self, _params: &Self::Params) -> Result<Vec<PathBuf>> {
         Ok(Vec::new())
+    }
+    /// See [`Stage::can_update`].
+    fn can_update(
+        &self,
+        _params: &Self::Params,
+        _changed: &Changed,
+    ) -> std::result::Result<(), String> {
+        Ok(())
+    }
+    /// See [`Stage::update`].
+    fn update(
+        &self,
+        _params: &Self::Params,
+        _inputs: &Inputs,
+        _previous: &Previous,
+        _progress: &dyn Progress,
+    ) -> Result<Updated> {
+        Err(StageError::Failed(format!(
+            "kind `{}` does not update a previous run",
+            Self::KIND
+        )))
     }
 }
 
@@ -269,6 +356,26 @@ impl<T: TypedStage> Stage for T {
     }
     fn budget_param(&self) -> Option<&'static str> {
         T::BUDGET_PARAM
+    }
+    fn updates(&self) -> bool {
+        T::UPDATES
+    }
+    fn can_update(&self, params: &Value, changed: &Changed) -> std::result::Result<(), String> {
+        if !T::UPDATES {
+            return Err(format!("kind `{}` computes from scratch", T::KIND));
+        }
+        let p: T::Params = typed_params(params).map_err(|e| e.to_string())?;
+        TypedStage::can_update(self, &p, changed)
+    }
+    fn update(
+        &self,
+        params: &Value,
+        inputs: &Inputs,
+        previous: &Previous,
+        progress: &dyn Progress,
+    ) -> Result<Updated> {
+        let p: T::Params = typed_params(params)?;
+        TypedStage::update(self, &p, inputs, previous, progress)
     }
 }
 

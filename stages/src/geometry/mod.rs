@@ -17,6 +17,7 @@
 pub mod aabb;
 pub mod bvh;
 pub mod camera;
+pub mod changes;
 pub mod cuboid;
 pub mod demo;
 pub mod ellipsoid;
@@ -32,6 +33,7 @@ pub mod ray;
 pub use aabb::Aabb;
 pub use bvh::Bvh;
 pub use camera::Camera;
+pub use changes::PrimitiveChanges;
 pub use error::GeometryError;
 pub use fields::{fixed_instance, fixed_semantic, scene_things};
 pub use glam::{DAffine3, DMat3, DVec3};

@@ -8,7 +8,9 @@ use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 use crate::geometry::cameras_from_table;
 use crate::scene::io::{image_keys, scene_info};
 use crate::scene::stereo::{depth_from_disparity, disparity, grey, StereoParams};
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::stage::{
+    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, Tables, TypedStage, Updated,
+};
 use crate::tables;
 
 /// The SGM stereo stage kind.
@@ -28,20 +30,51 @@ impl TypedStage for StereoDepth {
         doc: "rectified stereo images, intrinsics and the baseline",
     }];
     const OUTPUTS: &'static [&'static str] = &["stereo_depth"];
+    const UPDATES: bool = true;
 
     fn validate(p: &StereoParams) -> Result<()> {
         p.validate()
     }
 
+    /// Depth depends on the images, the cameras and the baseline: an edit of the primitives
+    /// (which may change the scene's list of classes) leaves it as it was.
+    fn can_update(&self, _: &StereoParams, changed: &Changed) -> std::result::Result<(), String> {
+        match changed.values().flatten().find(|t| *t != "scene_info") {
+            None => Ok(()),
+            Some(t) => Err(format!("the scene's `{t}` changed")),
+        }
+    }
+
+    fn update(
+        &self,
+        p: &StereoParams,
+        inputs: &Inputs,
+        previous: &Previous,
+        progress: &dyn Progress,
+    ) -> Result<Updated> {
+        let baseline = |t: &arrow::record_batch::RecordBatch| -> Result<f64> {
+            Ok(scene_info(&Tables::from([("scene_info".to_string(), t.clone())]))?.baseline)
+        };
+        let before = previous.input("scene", "scene_info")?.whole()?;
+        if baseline(before)? != baseline(inputs.table("scene", "scene_info")?)? {
+            let tables = TypedStage::run(self, p, inputs, progress)?;
+            return Ok(Updated {
+                tables,
+                redone: "every pair matched again (the baseline changed)".into(),
+            });
+        }
+        let depth = previous.output("stereo_depth")?.whole()?.clone();
+        Ok(Updated {
+            redone: format!("0 of {} pairs matched again", depth.num_rows()),
+            tables: Tables::from([("stereo_depth".to_string(), depth)]),
+        })
+    }
+
     fn run(&self, p: &StereoParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let info = scene_info(&{
-            let mut t = Tables::new();
-            t.insert(
-                "scene_info".into(),
-                inputs.table("scene", "scene_info")?.clone(),
-            );
-            t
-        })?;
+        let info = scene_info(&Tables::from([(
+            "scene_info".to_string(),
+            inputs.table("scene", "scene_info")?.clone(),
+        )]))?;
         let cams = cameras_from_table(inputs.table("scene", "cameras")?)?;
         let images = inputs.table("scene", "images")?;
         let keys = image_keys(images, "images")?;

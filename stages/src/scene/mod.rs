@@ -3,6 +3,7 @@
 //! previews, semi-global stereo matching ([`stereo`]), and the helpers they share ([`io`]).
 
 pub mod depth;
+pub mod edits;
 pub mod io;
 pub mod kitti360;
 pub mod kitti360_export;

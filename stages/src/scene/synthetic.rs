@@ -96,6 +96,9 @@ pub struct SceneParams {
     /// Pseudo labels for the fisheye images too; without them those images train colour only.
     /// A 2D network for fisheye images may not exist.
     pub fisheye_pseudo_labels: bool,
+    /// Edits of the generated primitives (reclassify, move, turn, resize, delete), in order.
+    /// The images and GT stay those of the street: the edits change the annotation only.
+    pub edits: Vec<super::edits::Edit>,
 }
 
 impl Default for SceneParams {
@@ -124,6 +127,7 @@ impl Default for SceneParams {
                 .collect(),
             cameras: vec![0, 1],
             fisheye_pseudo_labels: false,
+            edits: Vec::new(),
         }
     }
 }
@@ -221,6 +225,7 @@ impl SceneParams {
         if p.frames == 0 {
             return bad("`frames` must be at least 1".into());
         }
+        super::edits::check(&p.edits, None)?;
         if !(p.scale.is_finite() && p.scale > 0.0) {
             return bad(format!("`scale` must be positive, got {}", p.scale));
         }
@@ -653,10 +658,11 @@ impl ImageTables {
         layout: &Layout,
         t: &mut Tables,
     ) -> Result<()> {
+        let prims = super::edits::apply(&layout.bounds, &p.edits)?;
         // The classes present: in any GT image or any primitive, plus sky.
         let mut seen = self.seen;
         seen[SKY as usize] = true;
-        for b in &layout.bounds {
+        for b in &prims {
             seen[b.label as usize] = true;
         }
         let classes: Vec<u8> = (0..=255u8).filter(|&c| seen[c as usize]).collect();
@@ -674,7 +680,7 @@ impl ImageTables {
             )?,
         );
         t.insert("cameras".into(), cameras_to_table(cameras)?);
-        t.insert("primitives".into(), primitives_to_table(&layout.bounds)?);
+        t.insert("primitives".into(), primitives_to_table(&prims)?);
         for w in [
             self.images,
             self.gt_semantic,

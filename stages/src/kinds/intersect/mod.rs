@@ -3,9 +3,14 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::geometry::{self, Bvh, CameraRow};
+use crate::geometry::{self, Bvh};
 use crate::intervals::{first_hit_images, plan_image, plan_row, IntersectParams};
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, TableSet, Tables, TypedStage};
+use crate::stage::{
+    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, TableSet, Tables,
+    TypedStage, Updated,
+};
+
+mod update;
 
 pub struct Intersect;
 
@@ -23,6 +28,7 @@ impl TypedStage for Intersect {
         doc: "posed cameras and 3D bounding primitives",
     }];
     const OUTPUTS: &'static [&'static str] = &["ray_intervals"];
+    const UPDATES: bool = true;
 
     fn validate(p: &IntersectParams) -> Result<()> {
         if !(1..=255).contains(&p.k) {
@@ -54,20 +60,7 @@ impl TypedStage for Intersect {
     fn run(&self, p: &IntersectParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
         let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
         let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
-        let rows: Vec<&CameraRow> = rows
-            .iter()
-            .filter(|r| p.cameras.is_empty() || p.cameras.contains(&r.camera))
-            .collect();
-        if rows.is_empty() {
-            return Err(StageError::Input(if p.cameras.is_empty() {
-                "the scene's `cameras` table has no image".to_string()
-            } else {
-                format!(
-                    "no image of the scene's `cameras` table has a camera id in {:?}",
-                    p.cameras
-                )
-            }));
-        }
+        let rows = update::selected_rows(&rows, p)?;
         let bvh = Bvh::build(&prims);
         let total = rows.len() as u64;
         // One image at a time, each row stored as it is planned: the plan of a full-size scene
@@ -85,6 +78,25 @@ impl TypedStage for Intersect {
         let mut tables = Tables::new();
         out.finish_into(&mut tables)?;
         Ok(tables)
+    }
+
+    /// After an edit of the primitives alone, intersects again only the images that can see it.
+    fn can_update(
+        &self,
+        _: &IntersectParams,
+        changed: &Changed,
+    ) -> std::result::Result<(), String> {
+        update::can_update(changed)
+    }
+
+    fn update(
+        &self,
+        p: &IntersectParams,
+        inputs: &Inputs,
+        previous: &Previous,
+        progress: &dyn Progress,
+    ) -> Result<Updated> {
+        update::update(p, inputs, previous, progress)
     }
 
     fn export(&self, p: &IntersectParams, t: &TableSet, dir: &Path) -> Result<Vec<PathBuf>> {

@@ -161,6 +161,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     let xml_path = p.file(&p.bboxes);
     let objects = parse::bboxes(&xml_path, &parse::read_text(&xml_path)?)?;
     let prims = load_primitives(&xml_path, objects, origin, &centres, p.max_distance_m)?;
+    let prims = crate::scene::edits::apply(&prims, &p.edits)?;
     progress.update(1, 4, "primitives");
 
     // Images and labels.

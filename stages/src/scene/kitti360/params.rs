@@ -77,6 +77,9 @@ pub struct Kitti360Params {
     /// World position of the scene frame's origin. Null: the first left camera's centre,
     /// rounded to whole metres.
     pub origin: Option<[f64; 3]>,
+    /// Edits of the primitives as read (reclassify, move, turn, resize, delete), in order; ids
+    /// are rows of the unedited `primitives` table. Editing the XML file does the same by hand.
+    pub edits: Vec<crate::scene::edits::Edit>,
     /// Human-readable scene name; empty = "<sequence> frames <first>-<last>".
     pub name: String,
 }
@@ -122,6 +125,7 @@ impl Default for Kitti360Params {
             lidar_calib: "calibration/calib_cam_to_velo.txt".into(),
             max_distance_m: 80.0,
             origin: None,
+            edits: Vec::new(),
             name: String::new(),
         }
     }
@@ -203,6 +207,7 @@ impl Kitti360Params {
         if p.root.is_empty() {
             return bad("`root` must name the KITTI-360 directory".into());
         }
+        crate::scene::edits::check(&p.edits, None)?;
         if p.sequence.is_empty() || p.sequence.contains(['/', '\\']) {
             return bad(format!(
                 "`sequence` must be a plain directory name, got `{}`",

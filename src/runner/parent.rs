@@ -1,0 +1,183 @@
+//! Updating instead of computing from scratch. A stage whose kind can update
+//! ([`stages::Stage::updates`]) and whose inputs changed starts from its *parent*: the last run of
+//! the same stage instance (its run record) with the same kind, code version and params, whose
+//! entry and input entries are still in the cache. The updated entry's key is the stage's key
+//! with the parent's key added as input `@parent`: the same parent and the same inputs
+//! give the same entry, and it never passes for a run from scratch. Where there is no usable
+//! parent, the stage computes from scratch and the run log says why.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use stages::Changed;
+
+use crate::{
+    config::Pipeline,
+    fingerprint::{self, FILES_SLOT, PARENT_SLOT},
+    store::{Entry, InputInfo, Manifest, Store},
+};
+
+/// The entry a stage updates, with the entries it was computed from.
+#[derive(Debug, Clone)]
+pub struct Parent {
+    pub manifest: Box<Manifest>,
+    /// (slot, the parent's input entry), in slot order.
+    pub inputs: Vec<(String, Box<Manifest>)>,
+    /// Per slot, the tables the slot reads whose bytes differ from the current inputs'.
+    pub changed: Changed,
+}
+
+impl Parent {
+    /// The parent's key, shortened for messages.
+    pub fn short(&self) -> &str {
+        short_key(&self.manifest.key)
+    }
+
+    /// The updated entry's key and inputs: the stage's `inputs` plus the parent.
+    pub fn key(
+        &self,
+        p: &Pipeline,
+        i: usize,
+        inputs: &BTreeMap<String, InputInfo>,
+    ) -> (String, BTreeMap<String, InputInfo>) {
+        updated_key(p, i, &self.manifest.key, inputs)
+    }
+}
+
+/// The first 8 characters of a key.
+pub fn short_key(key: &str) -> &str {
+    &key[..key.len().min(8)]
+}
+
+/// Digest of table `table` in entry `m` (its file's blake3).
+fn table_digest<'m>(m: &'m Manifest, table: &str) -> Option<&'m str> {
+    m.files
+        .get(&format!("{table}.parquet"))
+        .map(|f| f.blake3.as_str())
+}
+
+/// The parent stage `i` can update, given its current `inputs` (with their entries' keys) and
+/// the current entry of each input slot (`current`). `Err(None)`: the stage computes from
+/// scratch for a reason not worth a word (its kind never updates, it never ran, `--cold`);
+/// `Err(Some(why))`: it could have updated, and why it does not.
+pub fn find_parent(
+    p: &Pipeline,
+    i: usize,
+    store: &Store,
+    inputs: &BTreeMap<String, InputInfo>,
+    current: &dyn Fn(&str) -> Option<Box<Manifest>>,
+) -> Result<Found, Option<String>> {
+    let s = &p.stages[i];
+    if !s.kind.updates() || !s.gather.is_empty() {
+        return Err(None);
+    }
+    let rec = store.run_record(&s.name).ok_or(None)?;
+    if rec.kind != s.kind.kind() || rec.version != s.kind.version() || rec.params != s.params {
+        return Err(None);
+    }
+    if rec.inputs.get(FILES_SLOT).map(|x| &x.digest) != inputs.get(FILES_SLOT).map(|x| &x.digest) {
+        return Err(Some("its input files changed".into()));
+    }
+    let slots = |m: &BTreeMap<String, InputInfo>| -> BTreeSet<String> {
+        m.keys().filter(|k| !k.starts_with('@')).cloned().collect()
+    };
+    if slots(&rec.inputs) != slots(inputs) {
+        return Err(Some("its inputs are connected differently".into()));
+    }
+    // The last run was an update from these very inputs: its entry is the current one (the
+    // same parent and inputs give the same key), not a parent.
+    if let Some(grand) = rec.inputs.get(PARENT_SLOT) {
+        let same = slots(inputs)
+            .iter()
+            .all(|k| rec.inputs[k].digest == inputs[k].digest);
+        if same {
+            return Ok(Found::Current(grand.digest.clone()));
+        }
+    }
+    let gone = |what: &str| Some(format!("{what} is no longer in the cache"));
+    let manifest = match store.check(&rec.key, false) {
+        Entry::Valid(m) => m,
+        _ => return Err(gone(&format!("its last entry {}", short_key(&rec.key)))),
+    };
+    let mut parent_inputs = Vec::new();
+    let mut changed = Changed::new();
+    for (slot, info) in inputs.iter().filter(|(k, _)| !k.starts_with('@')) {
+        let before = rec.inputs[slot].key.as_deref().ok_or_else(|| {
+            Some(format!(
+                "its last run did not record the entry of input `{slot}`"
+            ))
+        })?;
+        let old = match store.check(before, false) {
+            Entry::Valid(m) => m,
+            _ => return Err(gone(&format!("the input `{slot}` of its last run"))),
+        };
+        let new = current(slot).ok_or_else(|| Some(format!("input `{slot}` has no entry")))?;
+        debug_assert_eq!(Some(&new.key), info.key.as_ref());
+        let reads = s
+            .kind
+            .inputs()
+            .iter()
+            .find(|x| x.name == slot)
+            .map_or(&[][..], |x| x.tables);
+        let differ: BTreeSet<String> = reads
+            .iter()
+            .filter(|t| table_digest(&old, t) != table_digest(&new, t))
+            .map(|t| t.to_string())
+            .collect();
+        if !differ.is_empty() {
+            changed.insert(slot.clone(), differ);
+        }
+        parent_inputs.push((slot.clone(), old));
+    }
+    s.kind.can_update(&s.params, &changed).map_err(Some)?;
+    Ok(Found::Parent(Parent {
+        manifest,
+        inputs: parent_inputs,
+        changed,
+    }))
+}
+
+/// What [`find_parent`] found.
+#[derive(Debug, Clone)]
+pub enum Found {
+    /// The entry to update.
+    Parent(Parent),
+    /// The stage's last run updated this parent (key) from the current inputs already.
+    Current(String),
+}
+
+/// The key and inputs of the entry that updates `parent` (a key) from `inputs`.
+pub fn updated_key(
+    p: &Pipeline,
+    i: usize,
+    parent: &str,
+    inputs: &BTreeMap<String, InputInfo>,
+) -> (String, BTreeMap<String, InputInfo>) {
+    let s = &p.stages[i];
+    let mut inputs = inputs.clone();
+    inputs.insert(
+        PARENT_SLOT.into(),
+        InputInfo {
+            stage: format!("(the entry `{}` updated)", s.name),
+            digest: parent.to_string(),
+            key: Some(parent.to_string()),
+        },
+    );
+    let by_digest = inputs
+        .iter()
+        .map(|(k, v)| (k.clone(), v.digest.clone()))
+        .collect();
+    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &s.params, &by_digest);
+    (key, inputs)
+}
+
+/// ``` `scene`.primitives, `scene`.scene_info changed ```: the changed tables, for messages.
+pub fn describe(changed: &Changed) -> String {
+    if changed.is_empty() {
+        return "no table it reads changed".into();
+    }
+    let tables: Vec<String> = changed
+        .iter()
+        .flat_map(|(slot, t)| t.iter().map(move |t| format!("`{slot}`.{t}")))
+        .collect();
+    format!("{} changed", tables.join(", "))
+}

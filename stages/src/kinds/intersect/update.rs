@@ -1,0 +1,164 @@
+//! Updating the plan after an edit of the primitives: only the images a ray of which can meet a
+//! changed primitive (its old or its new extent) are intersected again; every other image's
+//! row is the previous one, its primitive ids renumbered where a removal shifted them. The
+//! result equals a run from scratch.
+
+use std::sync::Arc;
+
+use arrow::{
+    array::{Array, ArrayRef, ListArray, UInt32Array},
+    buffer::OffsetBuffer,
+    datatypes::UInt32Type,
+    record_batch::RecordBatch,
+};
+
+use crate::geometry::{
+    self,
+    changes::{bounding_ball, camera_may_see, widest_pixel_angle},
+    Bvh, Camera, CameraRow, Primitive, PrimitiveChanges,
+};
+use crate::intervals::{plan_image, plan_row, IntersectParams};
+use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
+use crate::tables;
+
+/// Why the previous plan cannot be updated: anything but the primitives changed.
+pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
+    let other: Vec<&String> = changed
+        .values()
+        .flatten()
+        .filter(|t| *t != "primitives")
+        .collect();
+    match other.first() {
+        None => Ok(()),
+        Some(t) => Err(format!("the scene's `{t}` changed")),
+    }
+}
+
+/// The selected camera rows, as a run from scratch plans them.
+pub(super) fn selected_rows<'a>(
+    rows: &'a [CameraRow],
+    p: &IntersectParams,
+) -> Result<Vec<&'a CameraRow>> {
+    let rows: Vec<&CameraRow> = rows
+        .iter()
+        .filter(|r| p.cameras.is_empty() || p.cameras.contains(&r.camera))
+        .collect();
+    if rows.is_empty() {
+        return Err(StageError::Input(if p.cameras.is_empty() {
+            "the scene's `cameras` table has no image".to_string()
+        } else {
+            format!(
+                "no image of the scene's `cameras` table has a camera id in {:?}",
+                p.cameras
+            )
+        }));
+    }
+    Ok(rows)
+}
+
+pub(super) fn update(
+    p: &IntersectParams,
+    inputs: &Inputs,
+    previous: &Previous,
+    progress: &dyn Progress,
+) -> Result<Updated> {
+    let old_table = previous.input("scene", "primitives")?.whole()?;
+    let new_table = inputs.table("scene", "primitives")?;
+    let changes = PrimitiveChanges::between(old_table, new_table)?;
+    let old = geometry::primitives_from_table(old_table)?;
+    let prims = geometry::primitives_from_table(new_table)?;
+    let changed: Vec<&Primitive> = changes
+        .removed
+        .iter()
+        .map(|&o| &old[o as usize])
+        .chain(changes.added.iter().map(|&n| &prims[n as usize]))
+        .collect();
+    let balls: Vec<_> = changed.iter().map(|q| bounding_ball(&q.aabb())).collect();
+    let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
+    let rows = selected_rows(&rows, p)?;
+    let before = previous.output("ray_intervals")?;
+    let before_rows = before.image_rows()?;
+    let bvh = Bvh::build(&prims);
+    // The widest pixel angle of each camera model (a few per scene), computed once.
+    let mut widest: Vec<(Camera, f64)> = Vec::new();
+    let mut out = inputs.writer("ray_intervals")?;
+    let (total, mut redone) = (rows.len(), 0usize);
+    for (i, row) in rows.into_iter().enumerate() {
+        progress.update(
+            i as u64,
+            total as u64,
+            &format!("frame {} camera {}", row.frame, row.camera),
+        );
+        let w = match widest.iter().find(|(c, _)| c.same_pixels(&row.cam)) {
+            Some(&(_, w)) => w,
+            None => {
+                let w = widest_pixel_angle(&row.cam);
+                widest.push((row.cam.clone(), w));
+                w
+            }
+        };
+        let sees_change = balls
+            .iter()
+            .any(|&(c, r)| camera_may_see(&row.cam, w, c, r, p.far));
+        let reused = match before_rows.get(&(row.frame, row.camera)) {
+            Some(&r) if !sees_change => renumbered(&before.row(r)?, &changes)?,
+            _ => None,
+        };
+        match reused {
+            Some(batch) => out.write(batch)?,
+            None => {
+                redone += 1;
+                out.write(plan_row(row, plan_image(&prims, &bvh, &row.cam, p), p)?)?;
+            }
+        }
+    }
+    progress.update(total as u64, total as u64, "done");
+    let mut tables = Tables::new();
+    out.finish_into(&mut tables)?;
+    let edited = changes.removed.len().max(changes.added.len());
+    Ok(Updated {
+        tables,
+        redone: format!(
+            "{redone} of {total} images intersected again ({edited} primitive{} changed)",
+            if edited == 1 { "" } else { "s" }
+        ),
+    })
+}
+
+/// The previous row of an image that sees no change, with its primitive ids renumbered; `None`
+/// when it names a primitive that changed after all (then it is intersected again).
+fn renumbered(row: &RecordBatch, changes: &PrimitiveChanges) -> Result<Option<RecordBatch>> {
+    if !changes.renumbers() {
+        return Ok(Some(row.clone()));
+    }
+    let ids = tables::get_list::<UInt32Type>(row, "ray_intervals", "prim")?.row(0);
+    let mut mapped = Vec::with_capacity(ids.len());
+    for &id in ids {
+        match changes.old_to_new.get(id as usize).copied().flatten() {
+            Some(n) => mapped.push(n),
+            None => return Ok(None),
+        }
+    }
+    let idx = row
+        .schema()
+        .index_of("prim")
+        .map_err(|e| StageError::Input(format!("ray_intervals: {e}")))?;
+    let old = row.column(idx);
+    let list = old
+        .as_any()
+        .downcast_ref::<ListArray>()
+        .ok_or_else(|| StageError::Input("ray_intervals: `prim` is not a list".into()))?;
+    let field = match list.data_type() {
+        arrow::datatypes::DataType::List(f) => f.clone(),
+        _ => unreachable!("a ListArray's type is List"),
+    };
+    let values: ArrayRef = Arc::new(UInt32Array::from(mapped));
+    let offsets = OffsetBuffer::from_lengths([ids.len()]);
+    let new_list = ListArray::try_new(field, offsets, values, None)
+        .map_err(|e| StageError::Failed(format!("renumbering primitive ids: {e}")))?;
+    let mut cols = row.columns().to_vec();
+    cols[idx] = Arc::new(new_list);
+    RecordBatch::try_new(row.schema(), cols)
+        .map(Some)
+        .map_err(|e| StageError::Failed(format!("renumbering primitive ids: {e}")))
+}

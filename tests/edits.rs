@@ -1,0 +1,145 @@
+//! An edit of the primitives updates the stages that can update (their previous entry is the
+//! parent) instead of computing them from scratch: the result is the from-scratch result's
+//! bytes, the same parent and edit give the same entry in any cache, `pipe status` and the run
+//! log say what was updated, and a changed pose falls back to a run from scratch.
+
+mod common;
+
+use std::fs;
+
+use common::Workspace;
+use pipe::runner::{Outcome, RunReport};
+
+const PIPELINE: &str = "
+stages:
+  scene:
+    uses: synthetic_scene
+    params: {frames: 6, scale: 0.0625}
+  depth:
+    uses: stereo_depth
+    inputs: {scene: scene}
+  rays:
+    uses: intersect
+    inputs: {scene: scene}
+";
+
+/// Primitive 57 of the default street (a small thing beside the road) scaled up by a fifth.
+const EDIT: &str = "scene.edits=[{primitive: 57, scale: [1.2, 1.2, 1.2]}]";
+
+fn manifest(ws: &Workspace, key: &str) -> serde_json::Value {
+    let path = ws.cache().join("objects").join(key).join("manifest.json");
+    serde_json::from_slice(&fs::read(path).unwrap()).unwrap()
+}
+
+/// (outcome, reason) of `stage` in the last run.
+fn last(ws: &Workspace, stage: &str) -> (Outcome, String) {
+    let rep: RunReport =
+        serde_json::from_slice(&fs::read(ws.cache().join("runs/last-run.json")).unwrap()).unwrap();
+    let s = rep.stages.into_iter().find(|s| s.stage == stage).unwrap();
+    (s.outcome, s.reason)
+}
+
+#[test]
+fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
+    let ws = Workspace::new(PIPELINE);
+    ws.run_ok(&[]);
+    let parent = ws.stage_key("rays");
+    // Once the edited scene is read, status knows what rays will update from.
+    ws.run_ok(&["--set", EDIT, "--until", "scene"]);
+    let status = ws.status(&["--set", EDIT]);
+    let line = ws.status_line(&status, "rays");
+    assert!(
+        line.contains("stale") && line.contains(&format!("will update entry {}", &parent[..8])),
+        "{line}"
+    );
+    assert!(line.contains("`scene`.primitives changed"), "{line}");
+
+    let out = ws.run_ok(&["--set", EDIT]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{out}");
+    assert!(
+        why.starts_with(&format!("updated from {}: ", &parent[..8])),
+        "{why}"
+    );
+    assert!(
+        why.contains(" of 12 images intersected again (1 primitive changed)"),
+        "{why}"
+    );
+    assert!(
+        out.contains("updated "),
+        "the summary names the outcome:\n{out}"
+    );
+    // Depth depends on the images alone: the update takes the previous maps.
+    let (outcome, why) = last(&ws, "depth");
+    assert_eq!(outcome, Outcome::Updated);
+    assert!(why.ends_with("0 of 6 pairs matched again"), "{why}");
+    assert!(ws.stage_is_fresh("rays"), "{}", ws.status(&["--set", EDIT]));
+    let updated = ws.stage_key("rays");
+    let m = manifest(&ws, &updated);
+    assert_eq!(m["parent"], parent.as_str());
+    // Once more: nothing to do.
+    ws.run_ok(&["--set", EDIT]);
+    assert_eq!(last(&ws, "rays").0, Outcome::Cached);
+
+    // The same edit from scratch: another key, the same bytes.
+    ws.run_ok(&["--set", EDIT, "--cold"]);
+    assert_eq!(last(&ws, "rays").0, Outcome::Ran);
+    let cold = ws.stage_key("rays");
+    assert_ne!(cold, updated);
+    let read = |k: &str| {
+        fs::read(
+            ws.cache()
+                .join("objects")
+                .join(k)
+                .join("ray_intervals.parquet"),
+        )
+        .unwrap()
+    };
+    assert!(
+        read(&cold) == read(&updated),
+        "the update's bytes differ from the cold run's"
+    );
+    assert_eq!(manifest(&ws, &cold)["output_digest"], m["output_digest"]);
+
+    // The same parent and the same edit in another cache: the same key and bytes.
+    let other = Workspace::new(PIPELINE);
+    other.run_ok(&[]);
+    assert_eq!(other.stage_key("rays"), parent);
+    other.run_ok(&["--set", EDIT]);
+    assert_eq!(other.stage_key("rays"), updated);
+    assert_eq!(
+        manifest(&other, &updated)["output_digest"],
+        m["output_digest"]
+    );
+}
+
+#[test]
+fn a_changed_pose_or_a_missing_parent_computes_from_scratch_and_says_why() {
+    let ws = Workspace::new(PIPELINE);
+    ws.run_ok(&[]);
+    // The edit and a camera height: every pose moved.
+    ws.run_ok(&["--set", EDIT, "--set", "scene.camera_height_m=1.6"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Ran);
+    assert!(
+        why.contains("from scratch: the scene's `cameras` changed"),
+        "{why}"
+    );
+    let (outcome, why) = last(&ws, "depth");
+    assert_eq!(outcome, Outcome::Ran);
+    assert!(why.contains("from scratch: the scene's `"), "{why}");
+
+    // The parent's entry removed (gc, a colleague's clean-up): from scratch, saying so.
+    let parent = ws.stage_key("rays");
+    fs::remove_dir_all(ws.cache().join("objects").join(&parent)).unwrap();
+    ws.run_ok(&["--set", "scene.camera_height_m=1.6"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Ran);
+    assert!(
+        why.contains(&format!(
+            "from scratch: its last entry {} is no longer in the cache",
+            &parent[..8]
+        )),
+        "{why}"
+    );
+}
