@@ -389,7 +389,15 @@ fn cmd_status(p: &Pipeline, verify: bool, scenes: &[String]) -> Result<i32> {
         .map(|&i| {
             let s = &p.stages[i];
             let (state, why) = match &res[i].state {
-                State::Fresh(_) => ("fresh", String::new()),
+                State::Fresh(m) => (
+                    "fresh",
+                    match (&m.parent, &m.redone) {
+                        (Some(parent), Some(redone)) => {
+                            format!("updated from {}: {redone}", &parent[..parent.len().min(8)])
+                        }
+                        _ => String::new(),
+                    },
+                ),
                 State::Stale(why) if res[i].corrupt => ("CORRUPT", why.clone()),
                 State::Stale(why) => ("stale", why.clone()),
             };

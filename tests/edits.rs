@@ -73,7 +73,12 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
     let (outcome, why) = last(&ws, "depth");
     assert_eq!(outcome, Outcome::Updated);
     assert!(why.ends_with("0 of 6 pairs matched again"), "{why}");
-    assert!(ws.stage_is_fresh("rays"), "{}", ws.status(&["--set", EDIT]));
+    let status = ws.status(&["--set", EDIT]);
+    let line = ws.status_line(&status, "rays");
+    assert!(
+        line.contains("fresh") && line.contains(&format!("updated from {}: ", &parent[..8])),
+        "{line}"
+    );
     let updated = ws.stage_key("rays");
     let m = manifest(&ws, &updated);
     assert_eq!(m["parent"], parent.as_str());
@@ -141,5 +146,39 @@ fn a_changed_pose_or_a_missing_parent_computes_from_scratch_and_says_why() {
             &parent[..8]
         )),
         "{why}"
+    );
+}
+
+/// The edit a team makes by hand: the box moved in the `data_3d_bboxes` XML and saved. The
+/// scene is read again, and rays is updated to the bytes of a run from scratch.
+#[test]
+fn an_edited_bboxes_file_updates_rays() {
+    let ws = Workspace::new("");
+    let root = ws.dir().join("k360");
+    let scene = common::kitti360_fixture(&root);
+    ws.write_pipeline(&format!(
+        "stages:\n{scene}  rays:\n    uses: intersect\n    inputs: {{scene: scene}}\n"
+    ));
+    ws.run_ok(&[]);
+    let parent = ws.stage_key("rays");
+    let xml = root.join("data_3d_bboxes/train/seq_a.xml");
+    let text = fs::read_to_string(&xml).unwrap();
+    assert!(text.contains("2. 0. 0. 1000.5"));
+    fs::write(&xml, text.replace("2. 0. 0. 1000.5", "2. 0. 0. 1001.5")).unwrap();
+    ws.run_ok(&[]);
+    assert_eq!(last(&ws, "scene").0, Outcome::Ran);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert!(
+        why.starts_with(&format!("updated from {}", &parent[..8])),
+        "{why}"
+    );
+    let updated = ws.stage_key("rays");
+    ws.run_ok(&["--cold"]);
+    let cold = ws.stage_key("rays");
+    assert_ne!(cold, updated);
+    assert_eq!(
+        manifest(&ws, &cold)["output_digest"],
+        manifest(&ws, &updated)["output_digest"]
     );
 }
