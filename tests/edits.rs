@@ -182,3 +182,79 @@ fn an_edited_bboxes_file_updates_rays() {
         manifest(&ws, &updated)["output_digest"]
     );
 }
+
+/// Train goes on from the previous weights after an edit: a short run appended to the log, the
+/// same bytes for the same parent and edit in another cache; a new class trains from scratch.
+#[test]
+fn an_edit_trains_on_from_the_previous_weights() {
+    const TRAIN: &str = "
+stages:
+  scene:
+    uses: synthetic_scene
+    params: {frames: 4, scale: 0.0625}
+  rays:
+    uses: intersect
+    inputs: {scene: scene}
+  train:
+    uses: train
+    inputs: {scene: scene, rays: rays}
+    params:
+      schedule: {iterations: 60, rays_per_batch: 256}
+      update: {iterations: 20}
+";
+    // Car 93 of the street becomes a caravan (a class the street has).
+    const RELABEL: &str = "scene.edits=[{primitive: 93, class: caravan, instance: 5}]";
+    let log_rows = |ws: &Workspace| {
+        let key = ws.stage_key("train");
+        let f = fs::File::open(
+            ws.cache()
+                .join("objects")
+                .join(key)
+                .join("train_log.parquet"),
+        )
+        .unwrap();
+        parquet::file::reader::SerializedFileReader::new(f)
+            .map(|r| {
+                use parquet::file::reader::FileReader;
+                r.metadata().file_metadata().num_rows()
+            })
+            .unwrap()
+    };
+    let ws = Workspace::new(TRAIN);
+    ws.run_ok(&[]);
+    let parent = ws.stage_key("train");
+    assert_eq!(log_rows(&ws), 60);
+    ws.run_ok(&["--set", RELABEL]);
+    let (outcome, why) = last(&ws, "train");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert!(
+        why.starts_with(&format!(
+            "updated from {}: 20 steps from the previous weights",
+            &parent[..8]
+        )),
+        "{why}"
+    );
+    assert_eq!(
+        log_rows(&ws),
+        80,
+        "the update's steps are appended to the log"
+    );
+    let updated = ws.stage_key("train");
+    let digest = manifest(&ws, &updated)["output_digest"].clone();
+    assert_ne!(digest, manifest(&ws, &parent)["output_digest"]);
+
+    let other = Workspace::new(TRAIN);
+    other.run_ok(&[]);
+    other.run_ok(&["--set", RELABEL]);
+    assert_eq!(other.stage_key("train"), updated);
+    assert_eq!(manifest(&other, &updated)["output_digest"], digest);
+
+    // A class the scene did not have: the semantic head changes shape.
+    ws.run_ok(&["--set", "scene.edits=[{primitive: 93, class: bus}]"]);
+    let (outcome, why) = last(&ws, "train");
+    assert_eq!(outcome, Outcome::Updated);
+    assert!(
+        why.ends_with("trained from scratch (the scene's classes changed)"),
+        "{why}"
+    );
+}

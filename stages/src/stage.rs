@@ -249,6 +249,10 @@ pub trait TypedStage: Send + Sync {
     const MOVED: &'static [(&'static str, &'static str)] = &[];
     /// See [`Stage::updates`]; a kind that sets it implements [`TypedStage::update`].
     const UPDATES: bool = false;
+    /// Top-level params left out of the canonical params (so of the cache key) while they hold
+    /// their defaults: params added later that change nothing a run from scratch writes (how an
+    /// update works), so adding them leaves every cached entry current.
+    const KEYLESS_DEFAULTS: &'static [&'static str] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -337,7 +341,15 @@ impl<T: TypedStage> Stage for T {
     fn canonical_params(&self, params: &Value) -> Result<Value> {
         let p: T::Params = typed_params(params)?;
         T::validate(&p)?;
-        serde_json::to_value(&p).map_err(|e| StageError::Params(e.to_string()))
+        let mut v = serde_json::to_value(&p).map_err(|e| StageError::Params(e.to_string()))?;
+        if let (Value::Object(m), Value::Object(d)) = (&mut v, self.default_params()) {
+            for name in T::KEYLESS_DEFAULTS {
+                if m.get(*name) == d.get(*name) {
+                    m.remove(*name);
+                }
+            }
+        }
+        Ok(v)
     }
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
         let p: T::Params = typed_params(params)?;

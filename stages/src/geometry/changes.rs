@@ -10,7 +10,9 @@ use arrow::{
 };
 use glam::DVec3;
 
-use super::{Aabb, Camera};
+use rayon::prelude::*;
+
+use super::{Aabb, Bvh, Camera, Primitive};
 use crate::{stage::Result, tables};
 
 /// How the primitives of a new table relate to those of an old one.
@@ -138,6 +140,31 @@ pub fn camera_may_see(cam: &Camera, widest: f64, centre: DVec3, radius: f64, far
     angle <= widest + spread + 1e-6
 }
 
+/// The pixels of `cam` (row-major indices, ascending) whose ray meets one of `changed` no
+/// farther than `far`: where an edit of those primitives (their old and new extents both
+/// listed) can change what the image's rays cross.
+pub fn pixels_meeting(cam: &Camera, changed: &[Primitive], far: f64) -> Vec<u32> {
+    if changed.is_empty() {
+        return Vec::new();
+    }
+    let bvh = Bvh::build(changed);
+    (0..cam.height)
+        .into_par_iter()
+        .map_init(Vec::new, |hits, y| {
+            (0..cam.width)
+                .filter(|&x| {
+                    cam.pixel_ray(x, y).is_some_and(|ray| {
+                        bvh.intersect_all(changed, &ray, 0.0, far, hits);
+                        !hits.is_empty()
+                    })
+                })
+                .map(|x| y * cam.width + x)
+                .collect::<Vec<u32>>()
+        })
+        .flatten()
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -195,6 +222,51 @@ mod tests {
             cy: 5.0,
             lens,
             cam_to_world: DAffine3::from_rotation_y(yaw),
+        }
+    }
+
+    /// Every pixel whose plan differs after an edit is one of `pixels_meeting` of the old and
+    /// new extents, and that set is not every pixel.
+    #[test]
+    fn pixels_meeting_holds_every_pixel_an_edit_changes() {
+        use crate::intervals::{plan_image, IntersectParams};
+        let (prims, cam) = crate::geometry::demo::street_scene(64, 24);
+        let p = IntersectParams::default();
+        for i in [5, prims.len() / 2, prims.len() - 1] {
+            let q = &prims[i];
+            let moved = Primitive::new(
+                q.shape.clone(),
+                DAffine3::from_translation(DVec3::new(0.0, 0.7, 0.3)) * q.to_world,
+                q.label,
+                q.instance,
+            )
+            .unwrap();
+            let mut edited = prims.clone();
+            edited[i] = moved.clone();
+            let before = plan_image(&prims, &Bvh::build(&prims), &cam, &p);
+            let after = plan_image(&edited, &Bvh::build(&edited), &cam, &p);
+            let meeting = pixels_meeting(&cam, &[q.clone(), moved], p.far);
+            let (mut off_a, mut off_b, mut differ) = (0usize, 0usize, 0usize);
+            for px in 0..before.hits.len() {
+                let (ha, hb) = (before.hits[px] as usize, after.hits[px] as usize);
+                let same = ha == hb
+                    && before.t_in[off_a..off_a + ha] == after.t_in[off_b..off_b + hb]
+                    && before.t_out[off_a..off_a + ha] == after.t_out[off_b..off_b + hb]
+                    && before.sky_t1[px] == after.sky_t1[px];
+                if !same {
+                    differ += 1;
+                    assert!(
+                        meeting.binary_search(&(px as u32)).is_ok(),
+                        "pixel {px} of edit {i}"
+                    );
+                }
+                (off_a, off_b) = (off_a + ha, off_b + hb);
+            }
+            assert!(
+                meeting.len() < before.hits.len(),
+                "edit {i} meets every pixel"
+            );
+            assert!(differ > 0, "edit {i} changed nothing: a useless test case");
         }
     }
 

@@ -14,6 +14,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::DVec3;
+use crate::model::NamedWeight;
 use crate::model::TrainError;
 use crate::model::{
     fit, weights, BatchOrder, Engine, FieldConfig, FieldSpec, LossTerm, LossTerms, Losses,
@@ -23,7 +24,11 @@ use crate::rng::{mix, SplitMix64};
 use crate::sampling::{
     self, ImageRays, JitterLabels, JitteredRays, PrimInfo, SamplingParams, TrainSampling,
 };
-use crate::stage::{InputSlot, Inputs, Progress, Result, StageError, Tables, TypedStage};
+use crate::stage::{
+    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, Tables, TypedStage, Updated,
+};
+
+mod update;
 use crate::{labels, tables};
 
 /// Parameters of the `train` stage, grouped by what they configure.
@@ -54,6 +59,9 @@ pub struct TrainParams {
     pub optimiser: Optimiser,
     /// Switches for research only (the paper's ablations): each makes the labels worse.
     pub experimental: Experimental,
+    /// How an edit of the primitives trains on from the previous weights (`pipe run --cold`:
+    /// from scratch). Absent from the cache key while at its defaults.
+    pub update: update::UpdateParams,
 }
 
 /// Switches for research only: the paper's ablations (docs/experiments/ablation.md).
@@ -127,6 +135,7 @@ impl Default for TrainParams {
             losses: Losses::default(),
             optimiser: Optimiser::default(),
             experimental: Experimental::default(),
+            update: update::UpdateParams::default(),
         }
     }
 }
@@ -261,10 +270,13 @@ impl TypedStage for Train {
     ];
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
     const BUDGET_PARAM: Option<&'static str> = Some("schedule.iterations");
+    const UPDATES: bool = true;
+    const KEYLESS_DEFAULTS: &'static [&'static str] = &["update"];
     const MOVED: &'static [(&'static str, &'static str)] = MOVED;
 
     fn validate(p: &TrainParams) -> Result<()> {
         p.schedule.validate()?;
+        p.update.validate()?;
         let config = p.model_config();
         config.validate()?;
         p.sampling.validate()?;
@@ -281,60 +293,137 @@ impl TypedStage for Train {
     }
 
     fn run(&self, p: &TrainParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
-        let mut rays = sampling::train_rays(inputs)?;
-        let depth_classes = p.depth_class_ids()?;
-        if !depth_classes.is_empty()
-            && !depth_classes.iter().any(|c| rays.prims.classes.contains(c))
-        {
-            // L_depth would silently be off.
-            return Err(StageError::Params(format!(
-                "`losses.depth_classes`: no primitive of the scene has one of [{}] (its classes: \
-                 {})",
-                p.losses.depth_classes.join(", "),
-                rays.prims
-                    .classes
-                    .iter()
-                    .filter_map(|&c| labels::by_id(c).map(|l| l.name))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            )));
-        }
-        rays.restrict_depth_to(&depth_classes);
+        let rays = training_rays(p, inputs)?;
         let candidates = candidates(&rays, &p.cameras);
         if candidates.is_empty() {
             return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
         }
         let config = p.model_config();
-        let plan = p.sampling_params();
         let centres: Vec<DVec3> = rays.images.iter().map(|im| im.cam.centre()).collect();
         let spec = spec_for(&rays.prims, &centres, &config);
         let mut trainer = p.backend.trainer(&config, spec.clone())?;
-        let iters = p.schedule.iterations;
         let batch = p.schedule.rays_per_batch.min(candidates.len());
-        let start = std::time::Instant::now();
-        let mut log = LogColumns::default();
-        let training_rays = candidates.len() as f64;
+        let training = candidates.len() as f64;
         let mut order = BatchOrder::over(p.seed, candidates, batch);
         // Epoch-wise shuffles: every ray is visited once per epoch. (Drawing each batch from a
         // SplitMix stream seeded with `seed ^ it * GOLDEN` made consecutive batches share all
         // but one ray: training saw only ~iterations + batch distinct rays.)
-        let next_batch = |it: usize| {
-            let ids: Vec<u32> = order.batch(it).to_vec();
+        let steps = Steps {
+            iterations: p.schedule.iterations,
+            batch,
+            training_rays: training,
+            first: 0,
+        };
+        let mut log = LogColumns::default();
+        steps.train(
+            p,
+            &rays,
+            trainer.as_mut(),
+            |it| order.batch(it).to_vec(),
+            &mut log,
+            progress,
+        )?;
+        outputs(p, &rays, spec, trainer.weights(), log.table()?)
+    }
+
+    /// After an edit of the primitives alone, trains on from the previous weights.
+    fn can_update(&self, _: &TrainParams, changed: &Changed) -> std::result::Result<(), String> {
+        update::can_update(changed)
+    }
+
+    fn update(
+        &self,
+        p: &TrainParams,
+        inputs: &Inputs,
+        previous: &Previous,
+        progress: &dyn Progress,
+    ) -> Result<Updated> {
+        update::update(self, p, inputs, previous, progress)
+    }
+}
+
+/// The scene's training rays, with stereo depth kept where `losses.depth_classes` says.
+fn training_rays(p: &TrainParams, inputs: &Inputs) -> Result<ImageRays> {
+    let mut rays = sampling::train_rays(inputs)?;
+    let depth_classes = p.depth_class_ids()?;
+    if !depth_classes.is_empty() && !depth_classes.iter().any(|c| rays.prims.classes.contains(c)) {
+        // L_depth would silently be off.
+        return Err(StageError::Params(format!(
+            "`losses.depth_classes`: no primitive of the scene has one of [{}] (its classes: {})",
+            p.losses.depth_classes.join(", "),
+            rays.prims
+                .classes
+                .iter()
+                .filter_map(|&c| labels::by_id(c).map(|l| l.name))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )));
+    }
+    rays.restrict_depth_to(&depth_classes);
+    Ok(rays)
+}
+
+/// The stage's tables: the weights, the model description and the log.
+fn outputs(
+    p: &TrainParams,
+    rays: &ImageRays,
+    spec: FieldSpec,
+    weights: Vec<NamedWeight>,
+    log: RecordBatch,
+) -> Result<Tables> {
+    let info = ModelInfo {
+        spec,
+        sampling: p.sampling_params(),
+        classes: rays.prims.classes.clone(),
+    };
+    Ok(Tables::from([
+        ("weights".to_string(), weights::weights_table(&weights)?),
+        ("model".to_string(), weights::model_table(&info, p.backend)?),
+        ("train_log".to_string(), log),
+    ]))
+}
+
+/// A run of training steps: how many, the batch, the rays drawn from, and the number of the
+/// first step (an update continues the previous run's count: its jitter and log go on).
+struct Steps {
+    iterations: usize,
+    batch: usize,
+    training_rays: f64,
+    first: usize,
+}
+
+impl Steps {
+    /// Trains `trainer` on the rays `ids_at(step)` names at each step, logging every step.
+    fn train(
+        &self,
+        p: &TrainParams,
+        rays: &ImageRays,
+        trainer: &mut dyn crate::model::Trainer,
+        mut ids_at: impl FnMut(usize) -> Vec<u32>,
+        log: &mut LogColumns,
+        progress: &dyn Progress,
+    ) -> Result<()> {
+        let plan = p.sampling_params();
+        let (iters, batch, first) = (self.iterations, self.batch, self.first);
+        let start = std::time::Instant::now();
+        let next_batch = |step: usize| {
+            let ids = ids_at(step);
+            let it = first + step;
             let jitter = SplitMix64::new(p.seed ^ (it as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
                 .next_u64();
             let (width, labels) = p
                 .sampling
-                .jitter_at(it as f64 * batch as f64 / training_rays);
+                .jitter_at(it as f64 * batch as f64 / self.training_rays);
             let batch = if width > 0.0 {
                 let jittered = JitteredRays {
-                    rays: &rays,
+                    rays,
                     seed: mix(jitter),
                     width: width as f64,
                     bilinear_labels: labels == JitterLabels::Bilinear,
                 };
                 sampling::sample_batch(&jittered, &ids, &plan, Some(jitter))
             } else {
-                sampling::sample_batch(&rays, &ids, &plan, Some(jitter))
+                sampling::sample_batch(rays, &ids, &plan, Some(jitter))
             };
             batch
                 .map(|b| {
@@ -350,32 +439,21 @@ impl TypedStage for Train {
                 })
                 .map_err(|e| TrainError::Batch(e.message().to_string()))
         };
-        fit(trainer.as_mut(), iters, next_batch, |losses| {
-            let it = losses.iteration;
-            log.push(it as u32, losses);
-            if it % 10 == 0 || it + 1 == iters {
+        let mut step = 0usize;
+        fit(trainer, iters, next_batch, |losses| {
+            log.push((first + step) as u32, losses);
+            if step % 10 == 0 || step + 1 == iters {
                 let secs = start.elapsed().as_secs_f64();
-                let rays_s = (it + 1) as f64 * batch as f64 / secs.max(1e-9);
+                let rays_s = (step + 1) as f64 * batch as f64 / secs.max(1e-9);
                 progress.update(
-                    it as u64 + 1,
+                    step as u64 + 1,
                     iters as u64,
                     &format!("loss {:.4} ({:.0} rays/s)", losses.total, rays_s),
                 );
             }
+            step += 1;
         })?;
-        let info = ModelInfo {
-            spec,
-            sampling: plan.clone(),
-            classes: rays.prims.classes.clone(),
-        };
-        Ok(Tables::from([
-            (
-                "weights".to_string(),
-                weights::weights_table(&trainer.weights())?,
-            ),
-            ("model".to_string(), weights::model_table(&info, p.backend)?),
-            ("train_log".to_string(), log.table()?),
-        ]))
+        Ok(())
     }
 }
 
@@ -487,6 +565,32 @@ mod tests {
         assert_eq!((s.aabb_min[0], s.aabb_max[0]), (199.0, 211.0));
         assert_eq!((s.aabb_min[1], s.aabb_max[1]), (-6.0, 6.0));
         s.validate().unwrap();
+    }
+
+    /// The `update` group enters the canonical params (the cache key) only when it is not the
+    /// default, so the key of every train stage cached before it existed stays the same.
+    #[test]
+    fn default_update_params_stay_out_of_the_key() {
+        use crate::Stage;
+        let canonical = |v: serde_json::Value| Train.canonical_params(&v).unwrap();
+        let plain = canonical(serde_json::json!({}));
+        assert!(plain.get("update").is_none(), "{plain}");
+        assert!(plain.get("schedule").is_some());
+        let set = canonical(serde_json::json!({"update": {"iterations": 50}}));
+        assert_eq!(set["update"]["iterations"], 50);
+        assert_eq!(
+            canonical(plain.clone()),
+            plain,
+            "canonical params are a fixed point"
+        );
+        let bad = Train
+            .canonical_params(&serde_json::json!({"update": {"edited_share": 1.5}}))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            bad.contains("`update.edited_share`: 1.5 must be in 0..=1"),
+            "{bad}"
+        );
     }
 
     /// `depth_classes` resolves names and refuses unknown ones by name.

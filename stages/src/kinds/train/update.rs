@@ -1,0 +1,222 @@
+//! Training on after an edit of the primitives: from the previous run's weights (fresh
+//! optimiser state), a short run whose batches draw a share of their rays from the pixels the
+//! edit can change (rays meeting a changed primitive's old or new extent) and the rest from
+//! every ray, so what the edit did not touch stays as it was.
+
+use arrow::compute::concat_batches;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use super::{candidates, outputs, training_rays, LogColumns, Steps, Train, TrainParams};
+use crate::geometry::{
+    self,
+    changes::{bounding_ball, camera_may_see, pixels_meeting, widest_pixel_angle},
+    Primitive, PrimitiveChanges,
+};
+use crate::model::{weights, BatchOrder};
+use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, TypedStage, Updated};
+
+/// How an edit of the primitives trains on from the previous weights.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct UpdateParams {
+    /// Steps trained after an edit, from the previous weights; the learning rate decays over them.
+    pub iterations: usize,
+    /// Share of each batch drawn from the rays the edit can change (0..=1); the rest from all.
+    pub edited_share: f64,
+    /// The update's first learning rate as a share of `optimiser.lr` (it decays as a run's does).
+    pub lr_factor: f64,
+}
+
+impl Default for UpdateParams {
+    fn default() -> Self {
+        Self {
+            iterations: 400,
+            edited_share: 0.5,
+            lr_factor: 0.1,
+        }
+    }
+}
+
+impl UpdateParams {
+    pub fn validate(&self) -> Result<()> {
+        if self.iterations == 0 {
+            return Err(StageError::Params(
+                "`update.iterations`: 0 must be at least 1".into(),
+            ));
+        }
+        if !(self.lr_factor.is_finite() && self.lr_factor > 0.0) {
+            return Err(StageError::Params(format!(
+                "`update.lr_factor`: {} must be > 0",
+                self.lr_factor
+            )));
+        }
+        if !(0.0..=1.0).contains(&self.edited_share) {
+            return Err(StageError::Params(format!(
+                "`update.edited_share`: {} must be in 0..=1",
+                self.edited_share
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Training can go on from the previous weights when only the primitives (and so the plan)
+/// changed: the images, labels and depth it fits are the same.
+pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
+    for (slot, tables) in changed {
+        for t in tables {
+            if !matches!(
+                (slot.as_str(), t.as_str()),
+                ("scene", "primitives") | ("rays", _)
+            ) {
+                return Err(format!("the input `{slot}`.{t} changed"));
+            }
+        }
+    }
+    Ok(())
+}
+
+pub(super) fn update(
+    stage: &Train,
+    p: &TrainParams,
+    inputs: &Inputs,
+    previous: &Previous,
+    progress: &dyn Progress,
+) -> Result<Updated> {
+    p.update.validate()?;
+    let rays = training_rays(p, inputs)?;
+    let (info, before) = weights::read(
+        previous.output("weights")?.whole()?,
+        previous.output("model")?.whole()?,
+    )?;
+    if info.classes != rays.prims.classes {
+        // A class appeared or went: the semantic head has another shape.
+        let tables = TypedStage::run(stage, p, inputs, progress)?;
+        return Ok(Updated {
+            tables,
+            redone: "trained from scratch (the scene's classes changed)".into(),
+        });
+    }
+    let old_table = previous.input("scene", "primitives")?.whole()?;
+    let changes = PrimitiveChanges::between(old_table, inputs.table("scene", "primitives")?)?;
+    let old = geometry::primitives_from_table(old_table)?;
+    let new = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
+    let changed: Vec<Primitive> = changes
+        .removed
+        .iter()
+        .map(|&o| old[o as usize].clone())
+        .chain(changes.added.iter().map(|&n| new[n as usize].clone()))
+        .collect();
+    let all = candidates(&rays, &p.cameras);
+    if all.is_empty() {
+        return Err(StageError::Input(super::nothing_crossed(
+            inputs, &p.cameras,
+        )?));
+    }
+    let edited = edited_rays(&rays, &p.cameras, &changed, &all);
+    let log_before = previous.output("train_log")?.whole()?;
+    if edited.is_empty() {
+        let tables = outputs(p, &rays, info.spec, before, log_before.clone())?;
+        return Ok(Updated {
+            tables,
+            redone: "no ray can see the edit: the previous weights".into(),
+        });
+    }
+    let mut config = p.model_config();
+    config.iterations = p.update.iterations;
+    config.optimiser.lr *= p.update.lr_factor;
+    let mut trainer = p.backend.trainer_from(&config, info.spec.clone(), before)?;
+    let batch = p.schedule.rays_per_batch.min(all.len());
+    let from_edited = ((batch as f64 * p.update.edited_share).round() as usize).min(batch);
+    let (training, n_edited) = (all.len() as f64, edited.len());
+    let seed = p.seed ^ 0x5EED_ED17;
+    let mut edited_order =
+        (from_edited > 0).then(|| BatchOrder::over(seed, edited, from_edited.min(n_edited)));
+    let mut all_order =
+        (batch > from_edited).then(|| BatchOrder::over(!seed, all, batch - from_edited));
+    let first = tables_last_iteration(log_before)? + 1;
+    let steps = Steps {
+        iterations: p.update.iterations,
+        batch,
+        training_rays: training,
+        first,
+    };
+    let mut log = LogColumns::default();
+    steps.train(
+        p,
+        &rays,
+        trainer.as_mut(),
+        |it| {
+            let mut ids = Vec::with_capacity(batch);
+            if let Some(o) = edited_order.as_mut() {
+                ids.extend_from_slice(o.batch(it));
+            }
+            if let Some(o) = all_order.as_mut() {
+                ids.extend_from_slice(o.batch(it));
+            }
+            ids
+        },
+        &mut log,
+        progress,
+    )?;
+    let added = log.table()?;
+    let log = concat_batches(&added.schema(), [log_before, &added])
+        .map_err(|e| StageError::Failed(format!("appending to the train log: {e}")))?;
+    let tables = outputs(p, &rays, info.spec, trainer.weights(), log)?;
+    Ok(Updated {
+        tables,
+        redone: format!(
+            "{} steps from the previous weights, {:.0} % of each batch from the {n_edited} rays \
+             the edit can change",
+            p.update.iterations,
+            100.0 * from_edited as f64 / batch as f64
+        ),
+    })
+}
+
+/// The last iteration of a train log (0 when empty).
+fn tables_last_iteration(log: &arrow::record_batch::RecordBatch) -> Result<usize> {
+    let it =
+        crate::tables::get_prim::<arrow::datatypes::UInt32Type>(log, "train_log", "iteration")?;
+    Ok(it.iter().copied().max().unwrap_or(0) as usize)
+}
+
+/// The training rays (ascending, among `all`) whose pixel ray meets a changed primitive.
+fn edited_rays(
+    rays: &crate::sampling::ImageRays,
+    cameras: &[u8],
+    changed: &[Primitive],
+    all: &[u32],
+) -> Vec<u32> {
+    let balls: Vec<_> = changed.iter().map(|q| bounding_ball(&q.aabb())).collect();
+    let mut widest: Vec<(&crate::geometry::Camera, f64)> = Vec::new();
+    let mut out = Vec::new();
+    for im in rays
+        .images
+        .iter()
+        .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
+    {
+        let w = match widest.iter().find(|(c, _)| c.same_pixels(&im.cam)) {
+            Some(&(_, w)) => w,
+            None => {
+                let w = widest_pixel_angle(&im.cam);
+                widest.push((&im.cam, w));
+                w
+            }
+        };
+        if !balls
+            .iter()
+            .any(|&(c, r)| camera_may_see(&im.cam, w, c, r, f64::INFINITY))
+        {
+            continue;
+        }
+        out.extend(
+            pixels_meeting(&im.cam, changed, f64::INFINITY)
+                .into_iter()
+                .map(|px| im.first_ray + px)
+                .filter(|r| all.binary_search(r).is_ok()),
+        );
+    }
+    out
+}
