@@ -667,7 +667,7 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
         jobs,
     };
     let done = bench::run(&opts)?;
-    let ran = done.report.count(Outcome::Ran);
+    let ran = done.report.count(Outcome::Ran) + done.report.count(Outcome::Updated);
     println!(
         "bench `{}`: {} stages ({ran} ran, {} cached), {} result rows, {}",
         opts.suite.name,
@@ -726,5 +726,7 @@ pub fn entry_state(store: &Store, key: &str) -> &'static str {
 
 /// Whether a run report contains a stage that actually ran.
 pub fn any_ran(rep: &runner::RunReport) -> bool {
-    rep.stages.iter().any(|r| r.outcome == Outcome::Ran)
+    rep.stages
+        .iter()
+        .any(|r| matches!(r.outcome, Outcome::Ran | Outcome::Updated))
 }

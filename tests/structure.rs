@@ -657,8 +657,8 @@ fn no_library_module_imports_a_stage_kind() {
         "library modules importing a kind:\n{}",
         up.join("\n")
     );
-    // The reader does see imports: the train kind's reach the model's engine.
-    let train: Module = vec!["kinds".into(), "train".into()];
+    // The reader does see imports: the train kind's params reach the model's engine.
+    let train: Module = vec!["kinds".into(), "train".into(), "params".into()];
     let engine: Module = vec!["model".into(), "engine".into()];
     assert!(c.edges[&train].contains(&engine), "{:?}", c.edges[&train]);
 }

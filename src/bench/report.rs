@@ -191,7 +191,7 @@ fn header(d: &mut Doc, i: &Input) {
     }
     d.p("**Error figures are reproducible**: the same suite and build on the same machine give the same metrics (scenes and training are seeded, and stages are cached by content). **Times vary** from run to run and machine to machine; a stage reused from the cache reports the wall time of the run that computed it.");
     let (ran, cached) = (
-        i.report.count(Outcome::Ran),
+        i.report.count(Outcome::Ran) + i.report.count(Outcome::Updated),
         i.report.count(Outcome::Cached),
     );
     d.p(format!(
@@ -478,7 +478,7 @@ fn runner_overhead(d: &mut Doc, i: &Input) {
         .report
         .stages
         .iter()
-        .filter(|r| r.outcome == Outcome::Ran)
+        .filter(|r| matches!(r.outcome, Outcome::Ran | Outcome::Updated))
         .map(|r| r.overhead_s)
         .collect();
     if !ran.is_empty() {

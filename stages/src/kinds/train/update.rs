@@ -4,62 +4,18 @@
 //! every ray, so what the edit did not touch stays as it was.
 
 use arrow::compute::concat_batches;
-use schemars::JsonSchema;
-use serde::{Deserialize, Serialize};
 
-use super::{candidates, outputs, training_rays, LogColumns, Steps, Train, TrainParams};
+use super::fit::{
+    candidates, from_scratch, nothing_crossed, outputs, training_rays, LogColumns, Steps,
+};
+use super::params::TrainParams;
 use crate::geometry::{
     self,
     changes::{bounding_ball, camera_may_see, pixels_meeting, widest_pixel_angle},
     Primitive, PrimitiveChanges,
 };
 use crate::model::{weights, BatchOrder};
-use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, TypedStage, Updated};
-
-/// How an edit of the primitives trains on from the previous weights.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-#[serde(default, deny_unknown_fields)]
-pub struct UpdateParams {
-    /// Steps trained after an edit, from the previous weights; the learning rate decays over them.
-    pub iterations: usize,
-    /// Share of each batch drawn from the rays the edit can change (0..=1); the rest from all.
-    pub edited_share: f64,
-    /// The update's first learning rate as a share of `optimiser.lr` (it decays as a run's does).
-    pub lr_factor: f64,
-}
-
-impl Default for UpdateParams {
-    fn default() -> Self {
-        Self {
-            iterations: 400,
-            edited_share: 0.5,
-            lr_factor: 0.1,
-        }
-    }
-}
-
-impl UpdateParams {
-    pub fn validate(&self) -> Result<()> {
-        if self.iterations == 0 {
-            return Err(StageError::Params(
-                "`update.iterations`: 0 must be at least 1".into(),
-            ));
-        }
-        if !(self.lr_factor.is_finite() && self.lr_factor > 0.0) {
-            return Err(StageError::Params(format!(
-                "`update.lr_factor`: {} must be > 0",
-                self.lr_factor
-            )));
-        }
-        if !(0.0..=1.0).contains(&self.edited_share) {
-            return Err(StageError::Params(format!(
-                "`update.edited_share`: {} must be in 0..=1",
-                self.edited_share
-            )));
-        }
-        Ok(())
-    }
-}
+use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Updated};
 
 /// Training can go on from the previous weights when only the primitives (and so the plan)
 /// changed: the images, labels and depth it fits are the same.
@@ -78,7 +34,6 @@ pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
 }
 
 pub(super) fn update(
-    stage: &Train,
     p: &TrainParams,
     inputs: &Inputs,
     previous: &Previous,
@@ -92,7 +47,7 @@ pub(super) fn update(
     )?;
     if info.classes != rays.prims.classes {
         // A class appeared or went: the semantic head has another shape.
-        let tables = TypedStage::run(stage, p, inputs, progress)?;
+        let tables = from_scratch(p, inputs, progress)?;
         return Ok(Updated {
             tables,
             redone: "trained from scratch (the scene's classes changed)".into(),
@@ -110,9 +65,7 @@ pub(super) fn update(
         .collect();
     let all = candidates(&rays, &p.cameras);
     if all.is_empty() {
-        return Err(StageError::Input(super::nothing_crossed(
-            inputs, &p.cameras,
-        )?));
+        return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
     }
     let edited = edited_rays(&rays, &p.cameras, &changed, &all);
     let log_before = previous.output("train_log")?.whole()?;
