@@ -102,6 +102,10 @@ impl TypedStage for Train {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::DVec3;
+    use crate::labels;
+    use crate::model::TrainConfig;
+    use crate::sampling::PrimInfo;
 
     fn prims(lo: [f32; 3], hi: [f32; 3]) -> PrimInfo {
         PrimInfo {
