@@ -77,8 +77,8 @@ pub struct Kitti360Params {
     /// World position of the scene frame's origin. Null: the first left camera's centre,
     /// rounded to whole metres.
     pub origin: Option<[f64; 3]>,
-    /// Edits of the primitives as read (reclassify, move, turn, resize, delete), in order; ids
-    /// are rows of the unedited `primitives` table. Editing the XML file does the same by hand.
+    /// Edits of the primitives as read (reclassify, move, turn, resize, delete), in order. Ids
+    /// are rows of the unedited `primitives` table; editing the XML file does the same by hand.
     pub edits: Vec<crate::scene::edits::Edit>,
     /// Human-readable scene name; empty = "<sequence> frames <first>-<last>".
     pub name: String,
