@@ -140,6 +140,44 @@ pub fn camera_may_see(cam: &Camera, widest: f64, centre: DVec3, radius: f64, far
     angle <= widest + spread + 1e-6
 }
 
+/// Which cameras can see a set of changed primitives: their bounding balls, and each camera
+/// model's widest pixel angle computed once (a scene has a few models and many poses).
+pub struct ChangeView {
+    balls: Vec<(DVec3, f64)>,
+    widest: Vec<(Camera, f64)>,
+}
+
+impl ChangeView {
+    pub fn new<'a>(changed: impl IntoIterator<Item = &'a Primitive>) -> Self {
+        Self {
+            balls: changed
+                .into_iter()
+                .map(|q| bounding_ball(&q.aabb()))
+                .collect(),
+            widest: Vec::new(),
+        }
+    }
+
+    /// Whether a ray of `cam` can meet a changed primitive no farther than `far` (see
+    /// [`camera_may_see`]).
+    pub fn seen_by(&mut self, cam: &Camera, far: f64) -> bool {
+        if self.balls.is_empty() {
+            return false;
+        }
+        let w = match self.widest.iter().find(|(c, _)| c.same_pixels(cam)) {
+            Some(&(_, w)) => w,
+            None => {
+                let w = widest_pixel_angle(cam);
+                self.widest.push((cam.clone(), w));
+                w
+            }
+        };
+        self.balls
+            .iter()
+            .any(|&(c, r)| camera_may_see(cam, w, c, r, far))
+    }
+}
+
 /// The pixels of `cam` (row-major indices, ascending) whose ray meets one of `changed` no
 /// farther than `far`: where an edit of those primitives (their old and new extents both
 /// listed) can change what the image's rays cross.

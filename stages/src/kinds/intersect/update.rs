@@ -12,11 +12,7 @@ use arrow::{
     record_batch::RecordBatch,
 };
 
-use crate::geometry::{
-    self,
-    changes::{bounding_ball, camera_may_see, widest_pixel_angle},
-    Bvh, Camera, CameraRow, Primitive, PrimitiveChanges,
-};
+use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, Primitive, PrimitiveChanges};
 use crate::intervals::{plan_image, plan_row, IntersectParams};
 use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
 use crate::tables;
@@ -73,14 +69,12 @@ pub(super) fn update(
         .map(|&o| &old[o as usize])
         .chain(changes.added.iter().map(|&n| &prims[n as usize]))
         .collect();
-    let balls: Vec<_> = changed.iter().map(|q| bounding_ball(&q.aabb())).collect();
+    let mut view = ChangeView::new(changed.iter().copied());
     let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let rows = selected_rows(&rows, p)?;
     let before = previous.output("ray_intervals")?;
     let before_rows = before.image_rows()?;
     let bvh = Bvh::build(&prims);
-    // The widest pixel angle of each camera model (a few per scene), computed once.
-    let mut widest: Vec<(Camera, f64)> = Vec::new();
     let mut out = inputs.writer("ray_intervals")?;
     let (total, mut redone) = (rows.len(), 0usize);
     for (i, row) in rows.into_iter().enumerate() {
@@ -89,17 +83,7 @@ pub(super) fn update(
             total as u64,
             &format!("frame {} camera {}", row.frame, row.camera),
         );
-        let w = match widest.iter().find(|(c, _)| c.same_pixels(&row.cam)) {
-            Some(&(_, w)) => w,
-            None => {
-                let w = widest_pixel_angle(&row.cam);
-                widest.push((row.cam.clone(), w));
-                w
-            }
-        };
-        let sees_change = balls
-            .iter()
-            .any(|&(c, r)| camera_may_see(&row.cam, w, c, r, p.far));
+        let sees_change = view.seen_by(&row.cam, p.far);
         let reused = match before_rows.get(&(row.frame, row.camera)) {
             Some(&r) if !sees_change => renumbered(&before.row(r)?, &changes)?,
             _ => None,

@@ -11,7 +11,7 @@ use super::fit::{
 use super::params::TrainParams;
 use crate::geometry::{
     self,
-    changes::{bounding_ball, camera_may_see, pixels_meeting, widest_pixel_angle},
+    changes::{pixels_meeting, ChangeView},
     Primitive, PrimitiveChanges,
 };
 use crate::model::{weights, BatchOrder};
@@ -142,26 +142,14 @@ fn edited_rays(
     changed: &[Primitive],
     all: &[u32],
 ) -> Vec<u32> {
-    let balls: Vec<_> = changed.iter().map(|q| bounding_ball(&q.aabb())).collect();
-    let mut widest: Vec<(&crate::geometry::Camera, f64)> = Vec::new();
+    let mut view = ChangeView::new(changed);
     let mut out = Vec::new();
     for im in rays
         .images
         .iter()
         .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
     {
-        let w = match widest.iter().find(|(c, _)| c.same_pixels(&im.cam)) {
-            Some(&(_, w)) => w,
-            None => {
-                let w = widest_pixel_angle(&im.cam);
-                widest.push((&im.cam, w));
-                w
-            }
-        };
-        if !balls
-            .iter()
-            .any(|&(c, r)| camera_may_see(&im.cam, w, c, r, f64::INFINITY))
-        {
+        if !view.seen_by(&im.cam, f64::INFINITY) {
             continue;
         }
         out.extend(
