@@ -185,8 +185,10 @@ fn an_edited_bboxes_file_updates_rays() {
 
 /// Train goes on from the previous weights after an edit: a short run appended to the log, the
 /// same bytes for the same parent and edit in another cache; a new class trains from scratch.
+/// Render renders again only the images (and cells) that can see the edit. A plan made with
+/// other params trains from scratch.
 #[test]
-fn an_edit_trains_on_from_the_previous_weights() {
+fn an_edit_trains_on_from_the_previous_weights_and_renders_only_what_it_changes() {
     const TRAIN: &str = "
 stages:
   scene:
@@ -201,6 +203,9 @@ stages:
     params:
       schedule: {iterations: 60, rays_per_batch: 256}
       update: {iterations: 20}
+  render:
+    uses: render
+    inputs: {scene: scene, rays: rays, train: train}
 ";
     // Car 93 of the street becomes a caravan (a class the street has).
     const RELABEL: &str = "scene.edits=[{primitive: 93, class: caravan, instance: 5}]";
@@ -242,12 +247,46 @@ stages:
     let updated = ws.stage_key("train");
     let digest = manifest(&ws, &updated)["output_digest"].clone();
     assert_ne!(digest, manifest(&ws, &parent)["output_digest"]);
+    let (outcome, why) = last(&ws, "render");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    // "updated from X: N of 8 images rendered again, P % of their pixels"
+    let pct: f64 = why
+        .split(", ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{why}"));
+    assert!(
+        why.contains(" of 8 images rendered again, ") && pct > 0.0 && pct < 30.0,
+        "only the cells car 93 can be in: {why}"
+    );
+    let render_key = ws.stage_key("render");
+    let render_digest = manifest(&ws, &render_key)["output_digest"].clone();
 
     let other = Workspace::new(TRAIN);
     other.run_ok(&[]);
     other.run_ok(&["--set", RELABEL]);
     assert_eq!(other.stage_key("train"), updated);
     assert_eq!(manifest(&other, &updated)["output_digest"], digest);
+    assert_eq!(other.stage_key("render"), render_key);
+    assert_eq!(
+        manifest(&other, &render_key)["output_digest"],
+        render_digest
+    );
+
+    // The plan made with other params: every ray may differ, no update holds.
+    other.run_ok(&["--set", RELABEL, "--set", "rays.far=60"]);
+    let (outcome, why) = last(&other, "train");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert!(
+        why.ends_with("trained from scratch (the plan was made with other parameters)"),
+        "{why}"
+    );
+    let (_, why) = last(&other, "render");
+    assert!(
+        why.ends_with("every image rendered again: the plan was made with other parameters"),
+        "{why}"
+    );
 
     // A class the scene did not have: the semantic head changes shape.
     ws.run_ok(&["--set", "scene.edits=[{primitive: 93, class: bus}]"]);
@@ -255,6 +294,13 @@ stages:
     assert_eq!(outcome, Outcome::Updated);
     assert!(
         why.ends_with("trained from scratch (the scene's classes changed)"),
+        "{why}"
+    );
+    // The scene's class list changed with it: render renders from scratch and says why.
+    let (outcome, why) = last(&ws, "render");
+    assert_eq!(outcome, Outcome::Ran);
+    assert!(
+        why.ends_with("from scratch: the input `scene`.scene_info changed"),
         "{why}"
     );
 }

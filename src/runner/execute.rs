@@ -146,6 +146,8 @@ impl Job {
             outputs,
             inputs: inputs.iter().map(|(k, v)| (k.clone(), v)).collect(),
             changed: &parent.changed,
+            descends: &parent.descends,
+            same_recipe: &parent.same_recipe,
         });
         let result = execute(
             &self.p,

@@ -24,6 +24,11 @@ pub struct Parent {
     pub inputs: Vec<(String, Box<Manifest>)>,
     /// Per slot, the tables the slot reads whose bytes differ from the current inputs'.
     pub changed: Changed,
+    /// The slots whose current entry was updated from (descends from) the parent's input entry.
+    pub descends: BTreeSet<String>,
+    /// The slots whose current entry the same kind, code version and params computed as the
+    /// parent's input entry (its own inputs changed, not its recipe).
+    pub same_recipe: BTreeSet<String>,
 }
 
 impl Parent {
@@ -100,6 +105,7 @@ pub fn find_parent(
     };
     let mut parent_inputs = Vec::new();
     let mut changed = Changed::new();
+    let (mut descends_from, mut same_recipe) = (BTreeSet::new(), BTreeSet::new());
     for (slot, info) in inputs.iter().filter(|(k, _)| !k.starts_with('@')) {
         let before = rec.inputs[slot].key.as_deref().ok_or_else(|| {
             Some(format!(
@@ -126,6 +132,12 @@ pub fn find_parent(
         if !differ.is_empty() {
             changed.insert(slot.clone(), differ);
         }
+        if descends(store, &new, &old.key) {
+            descends_from.insert(slot.clone());
+        }
+        if (&new.kind, new.version, &new.params) == (&old.kind, old.version, &old.params) {
+            same_recipe.insert(slot.clone());
+        }
         parent_inputs.push((slot.clone(), old));
     }
     s.kind.can_update(&s.params, &changed).map_err(Some)?;
@@ -133,7 +145,26 @@ pub fn find_parent(
         manifest,
         inputs: parent_inputs,
         changed,
+        descends: descends_from,
+        same_recipe,
     }))
+}
+
+/// Whether entry `m` was updated, directly or through a few updates in between, from the entry
+/// `ancestor` (a key); entries no longer cached end the search.
+fn descends(store: &Store, m: &Manifest, ancestor: &str) -> bool {
+    let mut parent = m.parent.clone();
+    for _ in 0..16 {
+        match parent {
+            Some(k) if k == ancestor => return true,
+            Some(k) => match store.check(&k, false) {
+                Entry::Valid(up) => parent = up.parent.clone(),
+                _ => return false,
+            },
+            None => return false,
+        }
+    }
+    false
 }
 
 /// What [`find_parent`] found.

@@ -144,6 +144,12 @@ pub struct Previous<'a> {
     /// The inputs it was computed from, by slot.
     pub inputs: BTreeMap<String, &'a TableSet>,
     pub changed: &'a Changed,
+    /// The input slots whose current entry was itself updated from the entry the previous run
+    /// read (so it carries that entry's work on, rather than replacing it).
+    pub descends: &'a BTreeSet<String>,
+    /// The input slots whose current entry the same kind, code version and params computed as
+    /// the entry the previous run read: it changed only because its own inputs did.
+    pub same_recipe: &'a BTreeSet<String>,
 }
 
 impl Previous<'_> {
@@ -164,6 +170,17 @@ impl Previous<'_> {
         self.outputs.get(table).ok_or_else(|| {
             StageError::Input(format!("the previous run has no output table `{table}`"))
         })
+    }
+
+    /// Whether input `slot`'s current entry was updated from the one the previous run read.
+    pub fn descends(&self, slot: &str) -> bool {
+        self.descends.contains(slot)
+    }
+
+    /// Whether input `slot`'s entry was computed as the previous run's was (see
+    /// [`Previous::same_recipe`]).
+    pub fn same_recipe(&self, slot: &str) -> bool {
+        self.same_recipe.contains(slot)
     }
 
     /// Whether table `table` of input `slot` changed.

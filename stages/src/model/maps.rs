@@ -106,6 +106,85 @@ pub fn render_image(
     camera: u8,
     sky: SkyColour,
 ) -> Result<(ImageMaps, [f32; 3])> {
+    render_image_again(r, rays, in_lens, frame, camera, sky, None)
+}
+
+/// The part of an image rendered again over a previous rendering of it: the pixels to decide
+/// again (a union of whole closed cells of the coarse grid, see [`coarse_cells_of`]); the others
+/// keep the previous maps (sky pixels take the current sky colour).
+pub struct Again<'a> {
+    pub previous: &'a ImageMaps,
+    pub pixels: &'a [bool],
+}
+
+/// Every pixel of the closed cells of the grid of spacing `stride` that hold one of `pixels`,
+/// row-major over `width` x `height`. The adaptive render decides a pixel from the corners of
+/// the cells around it, which all lie in its closed coarse cell: rendering these cells again
+/// gives, inside them, what rendering the whole image again gives.
+pub fn coarse_cells_of(width: u32, height: u32, stride: u32, pixels: &[u32]) -> Vec<bool> {
+    let s = stride.max(1);
+    let (cw, ch) = (width.div_ceil(s), height.div_ceil(s));
+    let mut cells = vec![false; (cw * ch) as usize];
+    for &p in pixels {
+        let (x, y) = (p % width, p / width);
+        cells[((y / s) * cw + x / s) as usize] = true;
+    }
+    let mut out = vec![false; (width * height) as usize];
+    for (c, _) in cells.iter().enumerate().filter(|(_, on)| **on) {
+        let (cx, cy) = (c as u32 % cw * s, c as u32 / cw * s);
+        for y in cy..=(cy + s).min(height - 1) {
+            let row = (y * width) as usize;
+            out[row + cx as usize..=row + (cx + s).min(width - 1) as usize].fill(true);
+        }
+    }
+    out
+}
+
+/// The pixels that see through the lens and cross no primitive: sky, without a field.
+fn sky_pixels(rays: &PlannedImage, in_lens: &[bool]) -> Vec<usize> {
+    let n = (rays.cam.width * rays.cam.height) as usize;
+    (0..n)
+        .filter(|&p| !rays.hits_anything(p) && in_lens.get(p).copied().unwrap_or(true))
+        .collect()
+}
+
+/// The colour an image's sky pixels get: the fixed one, or their mean input colour.
+pub fn sky_colour(
+    rays: &PlannedImage,
+    in_lens: &[bool],
+    sky: SkyColour,
+) -> std::result::Result<[f32; 3], String> {
+    let input = match sky {
+        SkyColour::Fixed(c) => return Ok(c),
+        SkyColour::FromInput(input) => input,
+    };
+    let (width, height) = (rays.cam.width, rays.cam.height);
+    if input.len() != (width * height) as usize * 3 {
+        return Err(format!(
+            "{} bytes, expected {width}x{height}x3",
+            input.len()
+        ));
+    }
+    let sky_ids = sky_pixels(rays, in_lens);
+    let mut c = [0f32; 3];
+    for &p in &sky_ids {
+        for (k, acc) in c.iter_mut().enumerate() {
+            *acc += (input[p * 3 + k] as f32 / 255.0) / sky_ids.len() as f32;
+        }
+    }
+    Ok(c)
+}
+
+/// [`render_image`], or with `again` only its pixels rendered again over a previous rendering.
+pub fn render_image_again(
+    r: &Renderer,
+    rays: &PlannedImage,
+    in_lens: &[bool],
+    frame: u32,
+    camera: u8,
+    sky: SkyColour,
+    again: Option<Again>,
+) -> Result<(ImageMaps, [f32; 3])> {
     let (width, height) = (rays.cam.width, rays.cam.height);
     let n = (width * height) as usize;
     let sky_label = labels::SKY;
@@ -134,31 +213,17 @@ pub fn render_image(
         maps.instance[p] = 0;
         maps.confidence[p] = 0.0;
     }
-    let sky_ids: Vec<usize> = (0..n)
-        .filter(|&p| !rays.hits_anything(p) && in_lens.get(p).copied().unwrap_or(true))
-        .collect();
-    let sky_rgb = match sky {
-        SkyColour::Fixed(c) => c,
-        SkyColour::FromInput(input) => {
-            if input.len() != n * 3 {
-                return Err(StageError::Input(format!(
-                    "images: frame {frame} camera {camera} has {} bytes, expected {width}x{height}x3",
-                    input.len()
-                )));
-            }
-            let mut c = [0f32; 3];
-            for &p in &sky_ids {
-                for (k, acc) in c.iter_mut().enumerate() {
-                    *acc += (input[p * 3 + k] as f32 / 255.0) / sky_ids.len() as f32;
-                }
-            }
-            c
-        }
-    };
+    let sky_ids = sky_pixels(rays, in_lens);
+    let sky_rgb = sky_colour(rays, in_lens, sky)
+        .map_err(|e| StageError::Input(format!("images: frame {frame} camera {camera}: {e}")))?;
     for &p in &sky_ids {
         for (out, v) in maps.rgb[p * 3..p * 3 + 3].iter_mut().zip(sky_rgb) {
             *out = (v * 255.0).round() as u8;
         }
+    }
+    let decide = |p: usize| again.as_ref().is_none_or(|a| a.pixels[p]);
+    if let Some(a) = &again {
+        keep_previous(&mut maps, a, rays)?;
     }
     let coarse_stride = r.coarse_stride.max(1);
     let on_grid = |x: u32, n: u32, s: u32| x % s == 0 || x == n - 1;
@@ -169,7 +234,7 @@ pub fn render_image(
                 .filter(move |&x| on_grid(x, width, coarse_stride))
                 .map(move |x| y * width + x)
         })
-        .filter(|&p| rays.hits_anything(p as usize))
+        .filter(|&p| rays.hits_anything(p as usize) && decide(p as usize))
         .collect();
     render_pixels(r, rays, &first, sky_rgb, &mut maps)?;
     // Halve the spacing until every pixel is decided: a pixel new on the finer grid is rendered
@@ -183,7 +248,7 @@ pub fn render_image(
             let row_known = on_grid(y, height, s);
             for x in (0..width).filter(|&x| on_grid(x, width, h)) {
                 let p = (y * width + x) as usize;
-                if (row_known && on_grid(x, width, s)) || !rays.hits_anything(p) {
+                if (row_known && on_grid(x, width, s)) || !rays.hits_anything(p) || !decide(p) {
                     continue;
                 }
                 let (x0, x1) = cell(x, width, s);
@@ -226,6 +291,39 @@ pub fn render_image(
         maps.rgb = Vec::new();
     }
     Ok((maps, sky_rgb))
+}
+
+/// Copies the previous maps of the pixels `a` does not decide again and that cross a primitive
+/// (sky pixels keep the current sky colour).
+fn keep_previous(maps: &mut ImageMaps, a: &Again, rays: &PlannedImage) -> Result<()> {
+    let prev = a.previous;
+    let n = maps.semantic.len();
+    let sizes = [
+        prev.semantic.len(),
+        prev.fixed.len(),
+        prev.instance.len(),
+        prev.depth.len(),
+        prev.confidence.len(),
+        a.pixels.len(),
+    ];
+    if (prev.width, prev.height) != (maps.width, maps.height) || sizes.iter().any(|&l| l != n) {
+        return Err(StageError::Input(format!(
+            "the previous maps of frame {} camera {} are not {}x{}",
+            maps.frame, maps.camera, maps.width, maps.height
+        )));
+    }
+    let prev_rgb = prev.rgb.len() == n * 3;
+    for p in (0..n).filter(|&p| !a.pixels[p] && rays.hits_anything(p)) {
+        maps.semantic[p] = prev.semantic[p];
+        maps.fixed[p] = prev.fixed[p];
+        maps.instance[p] = prev.instance[p];
+        maps.depth[p] = prev.depth[p];
+        maps.confidence[p] = prev.confidence[p];
+        if prev_rgb {
+            maps.rgb[p * 3..p * 3 + 3].copy_from_slice(&prev.rgb[p * 3..p * 3 + 3]);
+        }
+    }
+    Ok(())
 }
 
 /// The pixels of the grid of spacing `s` around `x` on a side of `n` pixels (the last pixel is
@@ -394,3 +492,164 @@ pub fn composite_rays(
 /// within their first few samples; then [`MARCH_ROUND`] at a time.
 const MARCH_ROUNDS: [usize; 2] = [4, 4];
 const MARCH_ROUND: usize = 8;
+
+#[cfg(test)]
+mod tests {
+    use glam::{DAffine3, DMat3, DQuat, DVec3};
+
+    use super::*;
+    use crate::geometry::{changes::pixels_meeting, Bvh, Primitive, Shape};
+    use crate::intervals::{plan_image, ImagePlan, IntersectParams};
+    use crate::model::testing::{lively, toy_field, toy_sampling};
+    use crate::model::{params, Engine, FieldSpec};
+    use crate::sampling::PrimInfo;
+
+    fn cuboid(centre: [f64; 3], size: [f64; 3], label: u8, instance: u32) -> Primitive {
+        let t = DAffine3::from_scale_rotation_translation(
+            DVec3::from(size),
+            DQuat::IDENTITY,
+            DVec3::from(centre),
+        );
+        Primitive::new(Shape::Cuboid, t, label, instance).unwrap()
+    }
+
+    /// A road, a building and a car (at `car_x`) in front of a camera at the origin looking
+    /// along +x.
+    fn street(car_x: f64) -> Vec<Primitive> {
+        vec![
+            cuboid([15.0, 0.0, -1.6], [30.0, 12.0, 0.2], labels::ROAD, 0),
+            cuboid([20.0, 5.0, 2.0], [8.0, 3.0, 8.0], labels::BUILDING, 0),
+            cuboid([car_x, -1.5, -0.8], [4.0, 1.8, 1.5], labels::CAR, 3),
+        ]
+    }
+
+    fn camera() -> Camera {
+        Camera {
+            width: 61,
+            height: 37,
+            fx: 40.0,
+            fy: 40.0,
+            cx: 30.5,
+            cy: 18.5,
+            lens: Lens::Pinhole,
+            cam_to_world: DAffine3::from_mat3(DMat3::from_cols(-DVec3::Y, -DVec3::Z, DVec3::X)),
+        }
+    }
+
+    /// Every map of `a` and `b` at pixel `p` (labels, depth, confidence; colour when both have
+    /// one).
+    fn same_at(a: &ImageMaps, b: &ImageMaps, p: usize) -> bool {
+        (a.semantic[p], a.fixed[p], a.instance[p]) == (b.semantic[p], b.fixed[p], b.instance[p])
+            && a.depth[p].to_bits() == b.depth[p].to_bits()
+            && a.confidence[p].to_bits() == b.confidence[p].to_bits()
+    }
+
+    /// The cells rendered again hold every pixel that meets the edit, and only closed coarse
+    /// cells that hold one (brute force over the cells).
+    #[test]
+    fn coarse_cells_are_the_closed_cells_of_the_pixels() {
+        let (w, h) = (23u32, 10u32);
+        for stride in [1, 2, 4, 8, 16] {
+            let pixels = [0u32, 5 * w + 7, 9 * w + 22, 4 * w + 8];
+            let cells = coarse_cells_of(w, h, stride, &pixels);
+            for y in 0..h {
+                for x in 0..w {
+                    // In a closed cell [x0, x0 + s] x [y0, y0 + s] of one of the pixels?
+                    let expected = pixels.iter().any(|&q| {
+                        let (qx, qy) = (q % w, q / w);
+                        let (x0, y0) = (qx - qx % stride, qy - qy % stride);
+                        (x0..=(x0 + stride).min(w - 1)).contains(&x)
+                            && (y0..=(y0 + stride).min(h - 1)).contains(&y)
+                    });
+                    assert_eq!(
+                        cells[(y * w + x) as usize],
+                        expected,
+                        "s {stride} ({x},{y})"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Rendering again where the edit can change the image gives there exactly what rendering
+    /// the whole image gives, and keeps the previous maps everywhere else.
+    #[test]
+    fn rendering_again_equals_a_whole_render_inside_and_the_previous_outside() {
+        let cam = camera();
+        let (before, after) = (street(12.0), street(13.0));
+        let info = PrimInfo::of(&after);
+        assert_eq!(info.classes, PrimInfo::of(&before).classes);
+        let spec = FieldSpec {
+            config: toy_field(),
+            num_classes: info.classes.len(),
+            aabb_min: [-5.0, -10.0, -5.0],
+            aabb_max: [35.0, 10.0, 10.0],
+            seed: 0,
+        };
+        let field = |seed| {
+            Engine::Fused
+                .field(spec.clone(), lively(params::initial(&spec), seed))
+                .unwrap()
+        };
+        let (old_field, new_field) = (field(1), field(2));
+        let sampling = toy_sampling();
+        let ip = IntersectParams::default();
+        let plan =
+            |prims: &[Primitive]| -> ImagePlan { plan_image(prims, &Bvh::build(prims), &cam, &ip) };
+        let (old_plan, new_plan) = (plan(&before), plan(&after));
+        let old_info = PrimInfo::of(&before);
+        let old_rays = PlannedImage::new(&old_info, &cam, &old_plan).unwrap();
+        let new_rays = PlannedImage::new(&info, &cam, &new_plan).unwrap();
+        let input = vec![90u8; (cam.width * cam.height * 3) as usize];
+        for stride in [1, 4] {
+            let render = |f: &dyn Field, rays: &PlannedImage, again: Option<Again>| {
+                let r = Renderer {
+                    field: f,
+                    sampling: &sampling,
+                    chunk: 64,
+                    heads: Heads::ALL,
+                    coarse_stride: stride,
+                    depth: DepthKind::Expected,
+                };
+                let sky = SkyColour::FromInput(&input);
+                render_image_again(&r, rays, &[], 0, 0, sky, again)
+                    .unwrap()
+                    .0
+            };
+            let previous = render(old_field.as_ref(), &old_rays, None);
+            let whole = render(new_field.as_ref(), &new_rays, None);
+            let meeting = pixels_meeting(&cam, &[before[2].clone(), after[2].clone()], ip.far);
+            let pixels = coarse_cells_of(cam.width, cam.height, stride, &meeting);
+            let again = Again {
+                previous: &previous,
+                pixels: &pixels,
+            };
+            let updated = render(new_field.as_ref(), &new_rays, Some(again));
+            let (mut inside, mut outside, mut differ_outside) = (0, 0, 0);
+            for p in 0..pixels.len() {
+                if pixels[p] {
+                    inside += 1;
+                    assert!(same_at(&updated, &whole, p), "stride {stride}: pixel {p}");
+                    assert_eq!(updated.rgb[p * 3..p * 3 + 3], whole.rgb[p * 3..p * 3 + 3]);
+                } else {
+                    outside += 1;
+                    assert!(
+                        same_at(&updated, &previous, p),
+                        "stride {stride}: pixel {p}"
+                    );
+                    differ_outside += usize::from(!same_at(&whole, &previous, p));
+                }
+            }
+            // The test tells the two apart: the fields differ outside the edit too.
+            assert!(inside > 50 && outside > 500, "{inside} / {outside}");
+            assert!(differ_outside > 100, "{differ_outside}");
+            // Every pixel rendered again: the whole render.
+            let all = vec![true; pixels.len()];
+            let again = Again {
+                previous: &previous,
+                pixels: &all,
+            };
+            assert_eq!(render(new_field.as_ref(), &new_rays, Some(again)), whole);
+        }
+    }
+}

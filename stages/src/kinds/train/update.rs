@@ -40,6 +40,13 @@ pub(super) fn update(
     progress: &dyn Progress,
 ) -> Result<Updated> {
     p.update.validate()?;
+    if previous.changed.contains_key("rays") && !previous.same_recipe("rays") {
+        let tables = from_scratch(p, inputs, progress)?;
+        return Ok(Updated {
+            tables,
+            redone: "trained from scratch (the plan was made with other parameters)".into(),
+        });
+    }
     let rays = training_rays(p, inputs)?;
     let (info, before) = weights::read(
         previous.output("weights")?.whole()?,

@@ -1,0 +1,85 @@
+//! Rendering again after an edit of the primitives: an image no changed primitive (old or new
+//! extent) can appear in keeps its previous row; in the others only the coarse-grid cells
+//! holding a pixel whose ray meets a changed primitive are rendered again, with the updated
+//! field, and every other pixel keeps its previous labels. Elsewhere the updated field differs
+//! from the previous one only by the drift of shared weights, which would move labels the edit
+//! did not touch.
+
+use super::images::{render_all, Previously};
+use super::params::RenderParams;
+use crate::geometry::{self, changes::ChangeView, Primitive, PrimitiveChanges};
+use crate::sampling::PrimInfo;
+use crate::stage::{Changed, Inputs, Previous, Progress, Result, Updated};
+
+/// The previous maps can be updated when only the primitives, and so the plan and the field,
+/// changed.
+pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
+    for (slot, tables) in changed {
+        for t in tables {
+            if !matches!(
+                (slot.as_str(), t.as_str()),
+                ("scene", "primitives") | ("rays", _) | ("train", _)
+            ) {
+                return Err(format!("the input `{slot}`.{t} changed"));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Why the previous maps cannot be kept anywhere, though only the allowed inputs changed.
+fn render_whole(previous: &Previous, old: &[Primitive], new: &[Primitive]) -> Option<&'static str> {
+    if previous.changed.contains_key("rays") && !previous.same_recipe("rays") {
+        return Some("the plan was made with other parameters");
+    }
+    if previous.changed.contains_key("train") && !previous.descends("train") {
+        return Some("the field was trained anew, not updated");
+    }
+    if PrimInfo::of(old).classes != PrimInfo::of(new).classes {
+        return Some("the scene's classes changed");
+    }
+    None
+}
+
+pub(super) fn update(
+    p: &RenderParams,
+    inputs: &Inputs,
+    previous: &Previous,
+    progress: &dyn Progress,
+) -> Result<Updated> {
+    let old_table = previous.input("scene", "primitives")?.whole()?;
+    let new_table = inputs.table("scene", "primitives")?;
+    let old = geometry::primitives_from_table(old_table)?;
+    let new = geometry::primitives_from_table(new_table)?;
+    if let Some(why) = render_whole(previous, &old, &new) {
+        let (tables, _) = render_all(p, inputs, progress, None)?;
+        return Ok(Updated {
+            tables,
+            redone: format!("every image rendered again: {why}"),
+        });
+    }
+    let changes = PrimitiveChanges::between(old_table, new_table)?;
+    let changed: Vec<Primitive> = changes
+        .removed
+        .iter()
+        .map(|&o| old[o as usize].clone())
+        .chain(changes.added.iter().map(|&n| new[n as usize].clone()))
+        .collect();
+    let maps = previous.output("label_maps")?;
+    let previously = Previously {
+        maps,
+        rows: maps.image_rows()?,
+        view: ChangeView::new(&changed),
+        changed,
+    };
+    let (tables, c) = render_all(p, inputs, progress, Some(previously))?;
+    Ok(Updated {
+        tables,
+        redone: format!(
+            "{} of {} images rendered again, {:.1} % of their pixels",
+            c.images_rendered,
+            c.images,
+            100.0 * c.pixels_rendered as f64 / c.pixels.max(1) as f64
+        ),
+    })
+}
