@@ -150,24 +150,7 @@ pub(super) fn render_all(
     // One image at a time: its plan is read, it is rendered and its maps are stored before
     // the next; nothing grows with the number of images.
     let plan = inputs.stored("rays", "ray_intervals")?;
-    let planned: Vec<(usize, (u32, u8))> = tables::frame_camera_index::<Vec<_>>(
-        &plan.columns(&["frame", "camera"])?,
-        "ray_intervals",
-    )?
-    .into_iter()
-    .filter(|((frame, _), _)| p.frames.is_empty() || p.frames.contains(frame))
-    .map(|(key, row)| (row, key))
-    .collect();
-    if let Some(f) = p
-        .frames
-        .iter()
-        .find(|f| !planned.iter().any(|(_, (g, _))| g == *f))
-    {
-        return Err(StageError::Params(format!(
-            "`frames`: frame {f} has no planned image (the `rays` stage planned frames {})",
-            frame_list(plan)?
-        )));
-    }
+    let planned = planned_images(p, plan)?;
     let images = inputs.stored("scene", "images")?;
     let image_rows: HashMap<(u32, u8), usize> =
         tables::frame_camera_index(&images.columns(&["frame", "camera"])?, "images")?;
@@ -261,6 +244,29 @@ pub(super) fn render_all(
     let mut tables = Tables::new();
     out.finish_into(&mut tables)?;
     Ok((tables, counts))
+}
+
+/// The images of the plan to render, (plan row, (frame, camera)), after the `frames` param.
+fn planned_images(p: &RenderParams, plan: &Table) -> Result<Vec<(usize, (u32, u8))>> {
+    let planned: Vec<(usize, (u32, u8))> = tables::frame_camera_index::<Vec<_>>(
+        &plan.columns(&["frame", "camera"])?,
+        "ray_intervals",
+    )?
+    .into_iter()
+    .filter(|((frame, _), _)| p.frames.is_empty() || p.frames.contains(frame))
+    .map(|(key, row)| (row, key))
+    .collect();
+    if let Some(f) = p
+        .frames
+        .iter()
+        .find(|f| !planned.iter().any(|(_, (g, _))| g == *f))
+    {
+        return Err(StageError::Params(format!(
+            "`frames`: frame {f} has no planned image (the `rays` stage planned frames {})",
+            frame_list(plan)?
+        )));
+    }
+    Ok(planned)
 }
 
 impl Rendered {
