@@ -217,7 +217,7 @@ pub enum Command {
     /// Run a bench suite through the cached pipeline: time against error, the ablation table,
     /// machine and runner figures (REPORT.md, report.html, results.parquet, PNG plots).
     Bench {
-        /// A built-in suite (quick, standard, full, seeds, growth, fisheye) or a suite file (.yaml).
+        /// A built-in suite (quick, standard, full, seeds, growth, fisheye, edits) or a suite file.
         #[arg(long, default_value = "quick", value_name = "SUITE")]
         suite: String,
         /// Output directory (default: bench-results/SUITE).
@@ -297,6 +297,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                 keep_going,
                 verify,
                 cold,
+                prefer_update: false,
             };
             let several = match &opts.scenes {
                 runner::Scenes::Named(list) => list.len() > 1,
@@ -641,11 +642,15 @@ fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
 }
 
 fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs) -> Result<i32> {
+    if let Some(edits) = bench::edits::load(suite)? {
+        return cmd_bench_edits(edits, out, args);
+    }
     let suite = bench::suite::load(suite)?.ok_or_else(|| {
         usage(format!(
             "unknown suite `{suite}` (built in: {}; or give the path of a suite .yaml file)",
             bench::suite::BUILT_IN
                 .iter()
+                .chain(bench::edits::suite::BUILT_IN)
                 .map(|(n, ..)| *n)
                 .collect::<Vec<_>>()
                 .join(", ")
@@ -677,6 +682,32 @@ fn cmd_bench(suite: &str, out: Option<PathBuf>, jobs: usize, args: &PipelineArgs
         runner::fmt_secs(done.wall_s)
     );
     for f in &done.files {
+        println!("  {}", f.display());
+    }
+    Ok(0)
+}
+
+/// `pipe bench --suite edits`: each edit before, updated and from scratch, one after another.
+fn cmd_bench_edits(
+    suite: bench::edits::EditsSuite,
+    out: Option<PathBuf>,
+    args: &PipelineArgs,
+) -> Result<i32> {
+    let out = out.unwrap_or_else(|| PathBuf::from("bench-results").join(&suite.name));
+    let base_file = match &suite.pipeline {
+        Some(p) if args.file == Path::new(DEFAULT_PIPELINE) => p.clone(),
+        _ => args.file.clone(),
+    };
+    let opts = bench::edits::EditsOptions {
+        base_file,
+        cache: args.cache.clone(),
+        set: overrides(args)?,
+        suite,
+        out,
+    };
+    let rows = bench::edits::run(&opts)?;
+    println!("bench `{}`: {} edits scored", opts.suite.name, rows.len());
+    for f in bench::edits::files(&opts.out) {
         println!("  {}", f.display());
     }
     Ok(0)

@@ -276,15 +276,26 @@ stages:
 
     // The plan made with other params: every ray may differ, no update holds.
     other.run_ok(&["--set", RELABEL, "--set", "rays.far=60"]);
-    let (outcome, why) = last(&other, "train");
+    for stage in ["train", "render"] {
+        let (outcome, why) = last(&other, stage);
+        assert_eq!(outcome, Outcome::Ran, "{stage}: {why}");
+        assert!(
+            why.ends_with("from scratch: the plan was made with other parameters"),
+            "{stage}: {why}"
+        );
+    }
+
+    // How an update works is no part of what it starts from: another budget still updates.
+    ws.run_ok(&[
+        "--set",
+        "scene.edits=[{primitive: 93, class: caravan, instance: 6}]",
+        "--set",
+        "train.update.iterations=10",
+    ]);
+    let (outcome, why) = last(&ws, "train");
     assert_eq!(outcome, Outcome::Updated, "{why}");
     assert!(
-        why.ends_with("trained from scratch (the plan was made with other parameters)"),
-        "{why}"
-    );
-    let (_, why) = last(&other, "render");
-    assert!(
-        why.ends_with("every image rendered again: the plan was made with other parameters"),
+        why.contains(": 10 steps from the previous weights"),
         "{why}"
     );
 

@@ -65,6 +65,9 @@ pub enum BenchError {
     },
     #[error(transparent)]
     Arrow(#[from] arrow::error::ArrowError),
+    /// Scoring what a bench produced (the edits suite reads the cached maps).
+    #[error("scoring the results: {0}")]
+    Results(String),
     #[error("drawing a plot: {0}")]
     Plot(String),
     #[error("encoding a plot as PNG")]

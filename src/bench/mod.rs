@@ -9,6 +9,7 @@
 //! budget parameter (`Stage::budget_param`) is the one the budgets go to.
 
 pub mod doc;
+pub mod edits;
 mod error;
 pub mod machine;
 pub mod plan;

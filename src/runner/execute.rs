@@ -146,8 +146,7 @@ impl Job {
             outputs,
             inputs: inputs.iter().map(|(k, v)| (k.clone(), v)).collect(),
             changed: &parent.changed,
-            descends: &parent.descends,
-            same_recipe: &parent.same_recipe,
+            lineage: &parent.lineage,
         });
         let result = execute(
             &self.p,

@@ -34,4 +34,7 @@ pub struct RunOptions {
     pub verify: bool,
     /// Compute every stale stage from scratch: no stage updates its previous run.
     pub cold: bool,
+    /// Update a stage that can (see [`crate::runner::parent`]) even where its entry from
+    /// scratch is cached: for measuring updates (`pipe bench --suite edits`).
+    pub prefer_update: bool,
 }

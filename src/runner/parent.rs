@@ -8,7 +8,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use stages::Changed;
+use stages::{Changed, Lineage};
 
 use crate::{
     config::Pipeline,
@@ -24,14 +24,18 @@ pub struct Parent {
     pub inputs: Vec<(String, Box<Manifest>)>,
     /// Per slot, the tables the slot reads whose bytes differ from the current inputs'.
     pub changed: Changed,
-    /// The slots whose current entry was updated from (descends from) the parent's input entry.
-    pub descends: BTreeSet<String>,
-    /// The slots whose current entry the same kind, code version and params computed as the
-    /// parent's input entry (its own inputs changed, not its recipe).
-    pub same_recipe: BTreeSet<String>,
+    /// How the current input entries relate to the parent's.
+    pub lineage: Lineage,
 }
 
 impl Parent {
+    /// Whether an input entry of `inputs` is another than the parent's.
+    pub fn inputs_differ(&self, inputs: &BTreeMap<String, InputInfo>) -> bool {
+        self.inputs
+            .iter()
+            .any(|(slot, m)| inputs.get(slot).and_then(|i| i.key.as_ref()) != Some(&m.key))
+    }
+
     /// The parent's key, shortened for messages.
     pub fn short(&self) -> &str {
         short_key(&self.manifest.key)
@@ -76,7 +80,20 @@ pub fn find_parent(
         return Err(None);
     }
     let rec = store.run_record(&s.name).ok_or(None)?;
-    if rec.kind != s.kind.kind() || rec.version != s.kind.version() || rec.params != s.params {
+    // Params that only say how to update may differ from the parent's.
+    let recipe = |v: &serde_json::Value| {
+        let mut v = v.clone();
+        if let serde_json::Value::Object(m) = &mut v {
+            for name in s.kind.update_only_params() {
+                m.remove(*name);
+            }
+        }
+        v
+    };
+    if rec.kind != s.kind.kind()
+        || rec.version != s.kind.version()
+        || recipe(&rec.params) != recipe(&s.params)
+    {
         return Err(None);
     }
     if rec.inputs.get(FILES_SLOT).map(|x| &x.digest) != inputs.get(FILES_SLOT).map(|x| &x.digest) {
@@ -105,7 +122,7 @@ pub fn find_parent(
     };
     let mut parent_inputs = Vec::new();
     let mut changed = Changed::new();
-    let (mut descends_from, mut same_recipe) = (BTreeSet::new(), BTreeSet::new());
+    let mut lineage = Lineage::default();
     for (slot, info) in inputs.iter().filter(|(k, _)| !k.starts_with('@')) {
         let before = rec.inputs[slot].key.as_deref().ok_or_else(|| {
             Some(format!(
@@ -133,20 +150,21 @@ pub fn find_parent(
             changed.insert(slot.clone(), differ);
         }
         if descends(store, &new, &old.key) {
-            descends_from.insert(slot.clone());
+            lineage.descends.insert(slot.clone());
         }
         if (&new.kind, new.version, &new.params) == (&old.kind, old.version, &old.params) {
-            same_recipe.insert(slot.clone());
+            lineage.same_recipe.insert(slot.clone());
         }
         parent_inputs.push((slot.clone(), old));
     }
-    s.kind.can_update(&s.params, &changed).map_err(Some)?;
+    s.kind
+        .can_update(&s.params, &changed, &lineage)
+        .map_err(Some)?;
     Ok(Found::Parent(Parent {
         manifest,
         inputs: parent_inputs,
         changed,
-        descends: descends_from,
-        same_recipe,
+        lineage,
     }))
 }
 

@@ -207,8 +207,18 @@ impl<'a> Scheduler<'a> {
         let ov0 = Instant::now();
         let (key, mut inputs) = key_of(p, i, &self.digests, &self.external).expect("inputs done");
         self.attach_keys(i, &mut inputs);
-        let Some(reason) = self.why_run(i, &key, &inputs, ov0)? else {
-            return Ok(true);
+        // Measuring updates (`RunOptions::prefer_update`): the update, though the entry from
+        // scratch is cached.
+        let prefer = self.opts.prefer_update
+            && matches!(self.parent_for(i, &inputs), Ok(Found::Parent(par)) if par.inputs_differ(&inputs))
+            && matches!(self.store.check(&key, false), Entry::Valid(_));
+        let reason = if prefer {
+            "its entry from scratch is cached, but updates are measured".to_string()
+        } else {
+            let Some(reason) = self.why_run(i, &key, &inputs, ov0)? else {
+                return Ok(true);
+            };
+            reason
         };
         let (key, reason, parent) = match self.parent_for(i, &inputs) {
             Ok(Found::Parent(parent)) => {

@@ -35,7 +35,7 @@ pub mod stream;
 pub mod tables;
 
 pub use stage::{
-    Changed, InputSlot, Inputs, MemoryInputs, MethodInfo, MetricInfo, NoProgress, Previous,
-    Progress, Result, ScoreSpec, Stage, StageError, Table, TableSet, TableWriter, Tables,
+    Changed, InputSlot, Inputs, Lineage, MemoryInputs, MethodInfo, MetricInfo, NoProgress,
+    Previous, Progress, Result, ScoreSpec, Stage, StageError, Table, TableSet, TableWriter, Tables,
     TypedStage, Updated,
 };

@@ -144,12 +144,30 @@ pub struct Previous<'a> {
     /// The inputs it was computed from, by slot.
     pub inputs: BTreeMap<String, &'a TableSet>,
     pub changed: &'a Changed,
-    /// The input slots whose current entry was itself updated from the entry the previous run
-    /// read (so it carries that entry's work on, rather than replacing it).
-    pub descends: &'a BTreeSet<String>,
-    /// The input slots whose current entry the same kind, code version and params computed as
-    /// the entry the previous run read: it changed only because its own inputs did.
-    pub same_recipe: &'a BTreeSet<String>,
+    pub lineage: &'a Lineage,
+}
+
+/// How each input's current entry relates to the one a previous run read.
+#[derive(Debug, Clone, Default)]
+pub struct Lineage {
+    /// The slots whose current entry was itself updated from the entry the previous run read
+    /// (so it carries that entry's work on, rather than replacing it).
+    pub descends: BTreeSet<String>,
+    /// The slots whose current entry the same kind, code version and params computed as the
+    /// entry the previous run read: it changed only because its own inputs did.
+    pub same_recipe: BTreeSet<String>,
+}
+
+impl Lineage {
+    /// Whether input `slot`'s current entry was updated from the one the previous run read.
+    pub fn descends(&self, slot: &str) -> bool {
+        self.descends.contains(slot)
+    }
+
+    /// Whether input `slot`'s entry was computed as the previous run's was.
+    pub fn same_recipe(&self, slot: &str) -> bool {
+        self.same_recipe.contains(slot)
+    }
 }
 
 impl Previous<'_> {
@@ -170,17 +188,6 @@ impl Previous<'_> {
         self.outputs.get(table).ok_or_else(|| {
             StageError::Input(format!("the previous run has no output table `{table}`"))
         })
-    }
-
-    /// Whether input `slot`'s current entry was updated from the one the previous run read.
-    pub fn descends(&self, slot: &str) -> bool {
-        self.descends.contains(slot)
-    }
-
-    /// Whether input `slot`'s entry was computed as the previous run's was (see
-    /// [`Previous::same_recipe`]).
-    pub fn same_recipe(&self, slot: &str) -> bool {
-        self.same_recipe.contains(slot)
     }
 
     /// Whether table `table` of input `slot` changed.
@@ -234,9 +241,18 @@ pub trait Stage: Send + Sync {
     fn budget_param(&self) -> Option<&'static str>;
     /// Whether this kind can update a previous run's outputs (see [`Stage::update`]).
     fn updates(&self) -> bool;
+    /// Top-level params that change only how an update works, nothing a run from scratch
+    /// writes ([`TypedStage::KEYLESS_DEFAULTS`]): a parent may have run with other values.
+    fn update_only_params(&self) -> &'static [&'static str];
     /// Whether [`Stage::update`] can start from a previous run whose inputs differ from the
-    /// current ones in `changed`; if not, why (the runner then computes from scratch).
-    fn can_update(&self, params: &Value, changed: &Changed) -> std::result::Result<(), String>;
+    /// current ones in `changed` and relate to them as `lineage` says; if not, why (the runner
+    /// then computes from scratch).
+    fn can_update(
+        &self,
+        params: &Value,
+        changed: &Changed,
+        lineage: &Lineage,
+    ) -> std::result::Result<(), String>;
     /// Like [`Stage::run`], starting from `previous` and redoing only what its changed inputs
     /// can change. The same previous run and inputs give the same bytes.
     fn update(
@@ -268,7 +284,8 @@ pub trait TypedStage: Send + Sync {
     const UPDATES: bool = false;
     /// Top-level params left out of the canonical params (so of the cache key) while they hold
     /// their defaults: params added later that change nothing a run from scratch writes (how an
-    /// update works), so adding them leaves every cached entry current.
+    /// update works), so adding them leaves every cached entry current. A parent may have run
+    /// with other values of them ([`Stage::update_only_params`]).
     const KEYLESS_DEFAULTS: &'static [&'static str] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
@@ -298,6 +315,7 @@ pub trait TypedStage: Send + Sync {
         &self,
         _params: &Self::Params,
         _changed: &Changed,
+        _lineage: &Lineage,
     ) -> std::result::Result<(), String> {
         Ok(())
     }
@@ -389,12 +407,20 @@ impl<T: TypedStage> Stage for T {
     fn updates(&self) -> bool {
         T::UPDATES
     }
-    fn can_update(&self, params: &Value, changed: &Changed) -> std::result::Result<(), String> {
+    fn update_only_params(&self) -> &'static [&'static str] {
+        T::KEYLESS_DEFAULTS
+    }
+    fn can_update(
+        &self,
+        params: &Value,
+        changed: &Changed,
+        lineage: &Lineage,
+    ) -> std::result::Result<(), String> {
         if !T::UPDATES {
             return Err(format!("kind `{}` computes from scratch", T::KIND));
         }
         let p: T::Params = typed_params(params).map_err(|e| e.to_string())?;
-        TypedStage::can_update(self, &p, changed)
+        TypedStage::can_update(self, &p, changed, lineage)
     }
     fn update(
         &self,

@@ -9,7 +9,8 @@ use crate::geometry::cameras_from_table;
 use crate::scene::io::{image_keys, scene_info};
 use crate::scene::stereo::{depth_from_disparity, disparity, grey, StereoParams};
 use crate::stage::{
-    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, Tables, TypedStage, Updated,
+    Changed, InputSlot, Inputs, Lineage, Previous, Progress, Result, StageError, Tables,
+    TypedStage, Updated,
 };
 use crate::tables;
 
@@ -38,7 +39,12 @@ impl TypedStage for StereoDepth {
 
     /// Depth depends on the images, the cameras and the baseline: an edit of the primitives
     /// (which may change the scene's list of classes) leaves it as it was.
-    fn can_update(&self, _: &StereoParams, changed: &Changed) -> std::result::Result<(), String> {
+    fn can_update(
+        &self,
+        _: &StereoParams,
+        changed: &Changed,
+        _: &Lineage,
+    ) -> std::result::Result<(), String> {
         match changed.values().flatten().find(|t| *t != "scene_info") {
             None => Ok(()),
             Some(t) => Err(format!("the scene's `{t}` changed")),

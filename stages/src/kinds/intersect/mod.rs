@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use crate::geometry::{self, Bvh};
 use crate::intervals::{first_hit_images, plan_image, plan_row, IntersectParams};
 use crate::stage::{
-    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, TableSet, Tables,
+    Changed, InputSlot, Inputs, Lineage, Previous, Progress, Result, StageError, TableSet, Tables,
     TypedStage, Updated,
 };
 
@@ -85,6 +85,7 @@ impl TypedStage for Intersect {
         &self,
         _: &IntersectParams,
         changed: &Changed,
+        _: &Lineage,
     ) -> std::result::Result<(), String> {
         update::can_update(changed)
     }

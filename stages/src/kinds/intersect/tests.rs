@@ -374,8 +374,7 @@ fn an_update_after_an_edit_equals_a_run_from_scratch() {
             outputs: &outputs,
             inputs: [("scene".to_string(), &inputs)].into(),
             changed: &changed,
-            descends: &Default::default(),
-            same_recipe: &Default::default(),
+            lineage: &Default::default(),
         };
         let mem = MemoryInputs::new([("scene", after)]);
         let u = TypedStage::update(&Intersect, &p, &mem.inputs(), &previous, &NoProgress).unwrap();

@@ -18,7 +18,7 @@ pub use params::{Colour, NovelView, RenderParams, NOVEL_CAMERA_BASE};
 
 use crate::report::panoptic_colors;
 use crate::stage::{
-    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, TableSet, Tables,
+    Changed, InputSlot, Inputs, Lineage, Previous, Progress, Result, StageError, TableSet, Tables,
     TypedStage, Updated,
 };
 use crate::{pngio, tables};
@@ -87,8 +87,13 @@ impl TypedStage for Render {
         Ok(images::render_all(p, inputs, progress, None)?.0)
     }
 
-    fn can_update(&self, _: &RenderParams, changed: &Changed) -> std::result::Result<(), String> {
-        update::can_update(changed)
+    fn can_update(
+        &self,
+        _: &RenderParams,
+        changed: &Changed,
+        lineage: &Lineage,
+    ) -> std::result::Result<(), String> {
+        update::can_update(changed, lineage)
     }
 
     fn update(

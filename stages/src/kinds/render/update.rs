@@ -9,11 +9,17 @@ use super::images::{render_all, Previously};
 use super::params::RenderParams;
 use crate::geometry::{self, changes::ChangeView, Primitive, PrimitiveChanges};
 use crate::sampling::PrimInfo;
-use crate::stage::{Changed, Inputs, Previous, Progress, Result, Updated};
+use crate::stage::{Changed, Inputs, Lineage, Previous, Progress, Result, Updated};
 
 /// The previous maps can be updated when only the primitives, and so the plan and the field,
-/// changed.
-pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
+/// changed: the plan made as before, the field updated from the one the maps were rendered with.
+pub(super) fn can_update(changed: &Changed, lineage: &Lineage) -> std::result::Result<(), String> {
+    if changed.contains_key("rays") && !lineage.same_recipe("rays") {
+        return Err("the plan was made with other parameters".into());
+    }
+    if changed.contains_key("train") && !lineage.descends("train") {
+        return Err("the field was trained anew, not updated".into());
+    }
     for (slot, tables) in changed {
         for t in tables {
             if !matches!(
@@ -27,14 +33,8 @@ pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
     Ok(())
 }
 
-/// Why the previous maps cannot be kept anywhere, though only the allowed inputs changed.
-fn render_whole(previous: &Previous, old: &[Primitive], new: &[Primitive]) -> Option<&'static str> {
-    if previous.changed.contains_key("rays") && !previous.same_recipe("rays") {
-        return Some("the plan was made with other parameters");
-    }
-    if previous.changed.contains_key("train") && !previous.descends("train") {
-        return Some("the field was trained anew, not updated");
-    }
+/// Why the previous maps cannot be kept anywhere, though the field was updated.
+fn render_whole(old: &[Primitive], new: &[Primitive]) -> Option<&'static str> {
     if PrimInfo::of(old).classes != PrimInfo::of(new).classes {
         return Some("the scene's classes changed");
     }
@@ -51,7 +51,7 @@ pub(super) fn update(
     let new_table = inputs.table("scene", "primitives")?;
     let old = geometry::primitives_from_table(old_table)?;
     let new = geometry::primitives_from_table(new_table)?;
-    if let Some(why) = render_whole(previous, &old, &new) {
+    if let Some(why) = render_whole(&old, &new) {
         let (tables, _) = render_all(p, inputs, progress, None)?;
         return Ok(Updated {
             tables,

@@ -6,7 +6,8 @@
 //! [`crate::model`]'s; this is glue between tables, the sampler and the engine.
 
 use crate::stage::{
-    Changed, InputSlot, Inputs, Previous, Progress, Result, StageError, Tables, TypedStage, Updated,
+    Changed, InputSlot, Inputs, Lineage, Previous, Progress, Result, StageError, Tables,
+    TypedStage, Updated,
 };
 
 mod fit;
@@ -84,8 +85,13 @@ impl TypedStage for Train {
     }
 
     /// After an edit of the primitives alone, trains on from the previous weights.
-    fn can_update(&self, _: &TrainParams, changed: &Changed) -> std::result::Result<(), String> {
-        update::can_update(changed)
+    fn can_update(
+        &self,
+        _: &TrainParams,
+        changed: &Changed,
+        lineage: &Lineage,
+    ) -> std::result::Result<(), String> {
+        update::can_update(changed, lineage)
     }
 
     fn update(

@@ -15,11 +15,14 @@ use crate::geometry::{
     Primitive, PrimitiveChanges,
 };
 use crate::model::{weights, BatchOrder};
-use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Updated};
+use crate::stage::{Changed, Inputs, Lineage, Previous, Progress, Result, StageError, Updated};
 
 /// Training can go on from the previous weights when only the primitives (and so the plan)
-/// changed: the images, labels and depth it fits are the same.
-pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
+/// changed: the images, labels and depth it fits are the same, and the plan was made as before.
+pub(super) fn can_update(changed: &Changed, lineage: &Lineage) -> std::result::Result<(), String> {
+    if changed.contains_key("rays") && !lineage.same_recipe("rays") {
+        return Err("the plan was made with other parameters".into());
+    }
     for (slot, tables) in changed {
         for t in tables {
             if !matches!(
@@ -40,13 +43,6 @@ pub(super) fn update(
     progress: &dyn Progress,
 ) -> Result<Updated> {
     p.update.validate()?;
-    if previous.changed.contains_key("rays") && !previous.same_recipe("rays") {
-        let tables = from_scratch(p, inputs, progress)?;
-        return Ok(Updated {
-            tables,
-            redone: "trained from scratch (the plan was made with other parameters)".into(),
-        });
-    }
     let rays = training_rays(p, inputs)?;
     let (info, before) = weights::read(
         previous.output("weights")?.whole()?,
