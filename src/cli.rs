@@ -149,6 +149,10 @@ pub enum Command {
         /// annotation edit otherwise does: see `pipe kinds` for the kinds that update).
         #[arg(long)]
         cold: bool,
+        /// Update a stage that can even where its result from scratch is cached (for measuring
+        /// updates: `pipe bench --suite edits`).
+        #[arg(long, hide = true, conflicts_with = "cold")]
+        prefer_update: bool,
         /// Run only this scene of a pipeline with `scenes:` (no dataset stages). Repeatable.
         #[arg(long = "scene", value_name = "NAME")]
         scene: Vec<String>,
@@ -269,6 +273,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
             keep_going,
             verify,
             cold,
+            prefer_update,
             scene,
             scenes,
             executor,
@@ -297,7 +302,7 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
                 keep_going,
                 verify,
                 cold,
-                prefer_update: false,
+                prefer_update,
             };
             let several = match &opts.scenes {
                 runner::Scenes::Named(list) => list.len() > 1,

@@ -215,7 +215,19 @@ pub fn updated_key(
         .iter()
         .map(|(k, v)| (k.clone(), v.digest.clone()))
         .collect();
-    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &s.params, &by_digest);
+    // The params that say how to update are part of an update's key even at their defaults
+    // (the stage's key leaves them out then): another default is another update.
+    let mut params = s.params.clone();
+    if let (serde_json::Value::Object(m), serde_json::Value::Object(d)) =
+        (&mut params, s.kind.default_params())
+    {
+        for name in s.kind.update_only_params() {
+            if let (false, Some(v)) = (m.contains_key(*name), d.get(*name)) {
+                m.insert(name.to_string(), v.clone());
+            }
+        }
+    }
+    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &params, &by_digest);
     (key, inputs)
 }
 

@@ -11,7 +11,6 @@ pub mod suite;
 use std::{
     fmt::Write as _,
     path::{Path, PathBuf},
-    sync::Arc,
     time::Instant,
 };
 
@@ -23,7 +22,7 @@ use crate::{
     bench::BenchError,
     config::{self, Override},
     error::IoContext,
-    runner::{self, fmt_bytes, Outcome, RunOptions, RunReport},
+    runner::{fmt_bytes, Outcome, RunReport},
     store::{Entry, Store},
 };
 use measure::{Entries, Measured};
@@ -76,32 +75,66 @@ fn override_of(key: &str, value: Yaml) -> Override {
 }
 
 /// One run of the base pipeline with `extra` settings, up to `until`.
+/// How a run of the bench computes what is stale.
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    /// As `pipe run` (the run before an edit: cached entries are taken as they are).
+    Plain,
+    /// Updating wherever a stage can, even where the result from scratch is cached.
+    Update,
+    /// As `pipe run --cold`.
+    Cold,
+}
+
+/// One run of `file` with `extra` settings, up to `until`, as a user runs it: `pipe run` in a
+/// process of its own (so its time and peak memory are the run's alone); its report is the
+/// cache's `runs/last-run.json`.
 fn run_once(
     opts: &EditsOptions,
+    file: &Path,
     extra: Vec<Override>,
     until: &str,
-    cold: bool,
+    mode: Mode,
 ) -> Result<(RunReport, f64), BenchError> {
-    let mut set = opts.set.clone();
-    set.extend(extra);
-    let mut p = config::load(&opts.base_file, &set)?;
+    let exe = std::env::current_exe().io_context(|| "finding the pipe executable".to_string())?;
+    let mut cmd = std::process::Command::new(exe);
+    cmd.arg("run").arg("-f").arg(file).args(["--until", until]);
     if let Some(c) = &opts.cache {
-        p.cache_dir = c.clone();
+        cmd.arg("--cache").arg(c);
     }
-    let ropts = RunOptions {
-        until: Some(until.into()),
-        cold,
-        prefer_update: !cold,
-        jobs: 1,
-        ..Default::default()
-    };
+    for o in opts.set.iter().chain(&extra) {
+        cmd.arg("--set").arg(&o.arg);
+    }
+    match mode {
+        Mode::Plain => {}
+        Mode::Update => {
+            cmd.arg("--prefer-update");
+        }
+        Mode::Cold => {
+            cmd.arg("--cold");
+        }
+    }
     let t0 = Instant::now();
-    let report = runner::run_blocking(Arc::new(p), &ropts)?;
-    if report.failed {
-        eprint!("{}", runner::summary(&report));
-        return Err(BenchError::PipelineFailed(opts.base_file.clone()));
+    // Its progress and log lines go to the bench's stderr; its summary table is not needed.
+    let status = cmd
+        .stdout(std::process::Stdio::null())
+        .status()
+        .io_context(|| format!("running pipe run -f {}", file.display()))?;
+    let wall = t0.elapsed().as_secs_f64();
+    if !status.success() {
+        return Err(BenchError::PipelineFailed(file.to_path_buf()));
     }
-    Ok((report, t0.elapsed().as_secs_f64()))
+    let cache = match &opts.cache {
+        Some(c) => c.clone(),
+        None => config::load(file, &[])?.cache_dir,
+    };
+    let path = cache.join("runs").join("last-run.json");
+    let bytes = std::fs::read(&path).io_context(|| format!("reading {}", path.display()))?;
+    let report: RunReport = serde_json::from_slice(&bytes).map_err(|source| BenchError::Json {
+        what: format!("reading {}", path.display()),
+        source,
+    })?;
+    Ok((report, wall))
 }
 
 fn key_of(report: &RunReport, stage: &str) -> Result<String, BenchError> {
@@ -160,8 +193,6 @@ fn cost(store: &Store, report: &RunReport, before: &RunReport, wall: f64) -> Cos
 pub fn run(opts: &EditsOptions) -> Result<Vec<EditRow>, BenchError> {
     let s = &opts.suite;
     std::fs::create_dir_all(&opts.out).io_context(|| format!("creating {}", opts.out.display()))?;
-    let base = config::load(&opts.base_file, &opts.set)?;
-    let store = Store::open_existing(opts.cache.as_ref().unwrap_or(&base.cache_dir));
     let scene_stage = s.edits_param.split_once('.').map_or("", |(a, _)| a);
     let seeds: Vec<Option<Yaml>> = match &s.seeds {
         Some(sd) => sd.values.iter().cloned().map(Some).collect(),
@@ -170,6 +201,9 @@ pub fn run(opts: &EditsOptions) -> Result<Vec<EditRow>, BenchError> {
     let edits_set = |v: &Yaml| override_of(&s.edits_param, v.clone());
     let mut rows = Vec::new();
     for scene in &s.scenes {
+        let file = scene.pipeline.as_deref().unwrap_or(&opts.base_file);
+        let cache = config::load(file, &opts.set)?.cache_dir;
+        let store = Store::open_existing(opts.cache.as_ref().unwrap_or(&cache));
         for seed in &seeds {
             let mut common: Vec<Override> = scene
                 .set
@@ -190,15 +224,22 @@ pub fn run(opts: &EditsOptions) -> Result<Vec<EditRow>, BenchError> {
                     .trim()
                     .to_string()
             });
-            let (unedited, _) = run_once(opts, with(&Yaml::Sequence(vec![])), scene_stage, false)?;
+            let (unedited, _) = run_once(
+                opts,
+                file,
+                with(&Yaml::Sequence(vec![])),
+                scene_stage,
+                Mode::Plain,
+            )?;
             for case in &s.edits {
                 eprintln!(
                     "bench edits: {} seed {seed_name}: {}",
                     scene.name, case.name
                 );
-                let (before, _) = run_once(opts, with(&case.before), &s.until, false)?;
-                let (update, wall_u) = run_once(opts, with(&case.edits), &s.until, false)?;
-                let (cold, wall_c) = run_once(opts, with(&case.edits), &s.until, true)?;
+                let (before, _) = run_once(opts, file, with(&case.before), &s.until, Mode::Plain)?;
+                let (update, wall_u) =
+                    run_once(opts, file, with(&case.edits), &s.until, Mode::Update)?;
+                let (cold, wall_c) = run_once(opts, file, with(&case.edits), &s.until, Mode::Cold)?;
                 let entries = Entries {
                     unedited: key_of(&unedited, scene_stage)?,
                     before: key_of(&before, scene_stage)?,

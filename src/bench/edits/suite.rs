@@ -42,11 +42,14 @@ pub struct Seeds {
     pub values: Vec<Yaml>,
 }
 
-/// A scene: the base pipeline with these `STAGE.PARAM: value` settings.
+/// A scene: the base pipeline (or its own) with these `STAGE.PARAM: value` settings.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Scene {
     pub name: String,
+    /// Its own pipeline file (e.g. `pipelines/kitti360.yaml` over an exported street).
+    #[serde(default)]
+    pub pipeline: Option<PathBuf>,
     #[serde(default)]
     pub set: Mapping,
 }

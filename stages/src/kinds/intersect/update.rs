@@ -16,6 +16,7 @@ use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, Primitive, Prim
 use crate::intervals::{plan_image, plan_row, IntersectParams};
 use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
 use crate::tables;
+use rayon::prelude::*;
 
 /// Why the previous plan cannot be updated: anything but the primitives changed.
 pub(super) fn can_update(changed: &Changed) -> std::result::Result<(), String> {
@@ -77,23 +78,37 @@ pub(super) fn update(
     let bvh = Bvh::build(&prims);
     let mut out = inputs.writer("ray_intervals")?;
     let (total, mut redone) = (rows.len(), 0usize);
-    for (i, row) in rows.into_iter().enumerate() {
-        progress.update(
-            i as u64,
-            total as u64,
-            &format!("frame {} camera {}", row.frame, row.camera),
-        );
-        let sees_change = view.seen_by(&row.cam, p.far);
+    let sees: Vec<bool> = rows.iter().map(|r| view.seen_by(&r.cam, p.far)).collect();
+    // The previous row (renumbered) where the image cannot see the change, else planned again.
+    let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<(RecordBatch, bool)> {
         let reused = match before_rows.get(&(row.frame, row.camera)) {
             Some(&r) if !sees_change => renumbered(&before.row(r)?, &changes)?,
             _ => None,
         };
-        match reused {
-            Some(batch) => out.write(batch)?,
-            None => {
-                redone += 1;
-                out.write(plan_row(row, plan_image(&prims, &bvh, &row.cam, p), p)?)?;
-            }
+        Ok(match reused {
+            Some(batch) => (batch, false),
+            None => (
+                plan_row(row, plan_image(&prims, &bvh, &row.cam, p), p)?,
+                true,
+            ),
+        })
+    };
+    // A few images at a time in parallel (reading and renumbering a row is serial work), written
+    // in order.
+    const AT_ONCE: usize = 4;
+    for (c, (chunk, sees)) in rows.chunks(AT_ONCE).zip(sees.chunks(AT_ONCE)).enumerate() {
+        let first = &chunk[0];
+        progress.update(
+            (c * AT_ONCE) as u64,
+            total as u64,
+            &format!("frame {} camera {}", first.frame, first.camera),
+        );
+        let done: Vec<Result<(RecordBatch, bool)>> =
+            chunk.par_iter().zip(sees.par_iter()).map(one).collect();
+        for d in done {
+            let (batch, again) = d?;
+            redone += usize::from(again);
+            out.write(batch)?;
         }
     }
     progress.update(total as u64, total as u64, "done");
