@@ -168,3 +168,50 @@ fn shipped_pipelines_validate() {
         assert!(code == 0 || needs_data, "{}: {out}{err}", f.display());
     }
 }
+
+/// A pipeline file that is no regular file (a FIFO, a device, a directory) or is too large is
+/// refused before it is read, by every command that takes `-f`: nothing hangs or fills memory.
+#[test]
+fn pipeline_files_that_are_no_regular_file_or_too_large_are_refused_unread() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fifo = tmp.path().join("fifo.yaml");
+    let made = Command::new("mkfifo").arg(&fifo).status();
+    let big = tmp.path().join("big.yaml");
+    fs::write(&big, "#".repeat(5 << 20)).unwrap();
+    let mut cases = vec![
+        (big.clone(), "more than 4 MiB is refused"),
+        (tmp.path().to_path_buf(), "is a directory"),
+        (Path::new("/dev/zero").to_path_buf(), "not a regular file"),
+    ];
+    if made.is_ok_and(|s| s.success()) {
+        cases.push((fifo, "not a regular file"));
+    }
+    for (file, want) in &cases {
+        for cmd in ["run", "status", "dag"] {
+            let mut child = Command::new(common::PIPE)
+                .args([cmd, "-f"])
+                .arg(file)
+                .current_dir(tmp.path())
+                .stdout(std::process::Stdio::null())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            // A hang is a failure, not a stuck test.
+            let t0 = std::time::Instant::now();
+            let status = loop {
+                if let Some(s) = child.try_wait().unwrap() {
+                    break s;
+                }
+                if t0.elapsed().as_secs() > 20 {
+                    child.kill().unwrap();
+                    panic!("pipe {cmd} -f {} hangs", file.display());
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            };
+            let mut err = String::new();
+            std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+            assert_eq!(status.code(), Some(2), "{cmd} {}: {err}", file.display());
+            assert!(err.contains(want), "{cmd} {}: {err}", file.display());
+        }
+    }
+}

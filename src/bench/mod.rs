@@ -75,8 +75,7 @@ pub fn run(opts: &BenchOptions) -> Result<BenchOutcome, BenchError> {
     let t0 = Instant::now();
     let base = config::load(&opts.base_file, &opts.set)?;
     let cache_dir = abs(opts.cache.as_ref().unwrap_or(&base.cache_dir));
-    let base_text = std::fs::read_to_string(&opts.base_file)
-        .io_context(|| format!("reading {}", opts.base_file.display()))?;
+    let base_text = config::read_text(&opts.base_file, "pipeline file")?;
     let extra: Vec<Setting> = opts
         .set
         .iter()

@@ -236,13 +236,7 @@ pub fn load(spec: &str) -> Result<Option<Suite>, ConfigError> {
         return Ok(None);
     }
     let file = Path::new(spec);
-    let text = std::fs::read_to_string(file).map_err(|e| ConfigError {
-        file: file.to_path_buf(),
-        loc: Loc::Unknown,
-        stage: None,
-        key: None,
-        message: format!("cannot read the suite file: {e}"),
-    })?;
+    let text = crate::config::read_text(file, "suite file")?;
     parse(file, &text).map(Some)
 }
 

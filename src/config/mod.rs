@@ -56,15 +56,57 @@ use yaml::{yaml_type, Ctx};
 
 const TOP_KEYS: &[&str] = &["cache", "scenes", "stages", "dataset", "executor"];
 
-/// Loads and validates a pipeline file, applying `--set` overrides.
-pub fn load(file: &Path, overrides: &[Override]) -> Result<Pipeline, ConfigError> {
-    let text = std::fs::read_to_string(file).map_err(|e| ConfigError {
+/// The largest pipeline or suite file read (a pipeline file is a few KiB).
+pub const MAX_FILE_BYTES: u64 = 4 << 20;
+
+/// The text of a pipeline or suite file (`what` names it in messages): only a regular file of at
+/// most [`MAX_FILE_BYTES`] is read, so a FIFO, a device or a huge file is refused at once instead
+/// of hanging or filling the memory.
+pub fn read_text(file: &Path, what: &str) -> Result<String, ConfigError> {
+    let err = |message: String| ConfigError {
         file: file.to_path_buf(),
         loc: Loc::Unknown,
         stage: None,
         key: None,
-        message: format!("cannot read the pipeline file: {e}"),
-    })?;
+        message,
+    };
+    let meta = std::fs::metadata(file).map_err(|e| err(format!("cannot read the {what}: {e}")))?;
+    if !meta.is_file() {
+        let kind = if meta.is_dir() {
+            "a directory"
+        } else {
+            "not a regular file (a FIFO, socket or device?)"
+        };
+        return Err(err(format!("the {what} is {kind}: expected a YAML file")));
+    }
+    if meta.len() > MAX_FILE_BYTES {
+        return Err(err(format!(
+            "the {what} is {:.1} MiB; more than {} MiB is refused (is it the right file?)",
+            meta.len() as f64 / (1u64 << 20) as f64,
+            MAX_FILE_BYTES >> 20
+        )));
+    }
+    let mut text = String::new();
+    std::io::Read::read_to_string(
+        &mut std::io::Read::take(
+            std::fs::File::open(file).map_err(|e| err(format!("cannot read the {what}: {e}")))?,
+            MAX_FILE_BYTES + 1,
+        ),
+        &mut text,
+    )
+    .map_err(|e| err(format!("cannot read the {what}: {e}")))?;
+    if text.len() as u64 > MAX_FILE_BYTES {
+        return Err(err(format!(
+            "the {what} grew past {} MiB while being read",
+            MAX_FILE_BYTES >> 20
+        )));
+    }
+    Ok(text)
+}
+
+/// Loads and validates a pipeline file, applying `--set` overrides.
+pub fn load(file: &Path, overrides: &[Override]) -> Result<Pipeline, ConfigError> {
+    let text = read_text(file, "pipeline file")?;
     parse(file, &text, overrides)
 }
 

@@ -95,8 +95,7 @@ pub fn load(spec: &str) -> Result<Option<EditsSuite>, ConfigError> {
             if !(spec.ends_with(".yaml") || spec.ends_with(".yml")) || !file.is_file() {
                 return Ok(None);
             }
-            let text = std::fs::read_to_string(&file)
-                .map_err(|e| error(&file, None, format!("cannot read the suite file: {e}")))?;
+            let text = crate::config::read_text(&file, "suite file")?;
             (file, text)
         }
     };
