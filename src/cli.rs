@@ -137,7 +137,7 @@ pub enum Command {
         #[arg(long)]
         no_wait: bool,
         /// How many independent stages may run at once.
-        #[arg(long, short = 'j', default_value_t = 1)]
+        #[arg(long, short = 'j', default_value_t = 1, value_parser = at_least_one)]
         jobs: usize,
         /// After a stage fails, still run the stages that do not depend on it.
         #[arg(long)]
@@ -228,7 +228,7 @@ pub enum Command {
         #[arg(long, value_name = "DIR")]
         out: Option<PathBuf>,
         /// How many independent stages may run at once.
-        #[arg(long, short = 'j', default_value_t = 1)]
+        #[arg(long, short = 'j', default_value_t = 1, value_parser = at_least_one)]
         jobs: usize,
         #[command(flatten)]
         pipeline: PipelineArgs,
@@ -258,6 +258,15 @@ fn load(args: &PipelineArgs) -> Result<Pipeline> {
         p.cache_dir = c.clone();
     }
     Ok(p)
+}
+
+/// A count that must be at least 1 (`-j 0` would run nothing, so it is refused).
+fn at_least_one(s: &str) -> std::result::Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("0 would run nothing; at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(format!("{e}")),
+    }
 }
 
 pub fn dispatch(cli: Cli) -> Result<i32> {

@@ -68,6 +68,7 @@ fn bad_command_lines_are_usage_errors() {
         vec!["--until", "a", "--only", "a"],
         vec!["--frobnicate"],
         vec!["-f", "missing.yaml"],
+        vec!["-j", "0"],
     ] {
         let (code, _, err) = ws.run(&args);
         assert_eq!(code, 2, "{args:?}: {err}");
