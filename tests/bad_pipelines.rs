@@ -216,3 +216,18 @@ fn pipeline_files_that_are_no_regular_file_or_too_large_are_refused_unread() {
         }
     }
 }
+
+/// A cache whose `objects` is a file is not taken for a cache: the message says what is wrong.
+#[test]
+fn a_cache_directory_that_is_a_file_is_named() {
+    let ws = common::Workspace::new("stages:\n  a:\n    uses: test_source\n");
+    fs::create_dir_all(ws.cache()).unwrap();
+    fs::write(ws.cache().join("objects"), "not a directory").unwrap();
+    let (code, _, err) = ws.run(&[]);
+    assert_ne!(code, 0);
+    assert!(
+        err.contains("objects is a file, not a directory: this is not a cache"),
+        "{err}"
+    );
+    assert!(!err.contains("File exists") && !err.contains("panicked"), "{err}");
+}

@@ -20,6 +20,18 @@ impl Store {
     pub fn open(root: &Path) -> Result<Store, StoreError> {
         for d in ["objects", "tmp", "trash", "runs", "state", "locks"] {
             let p = root.join(d);
+            // Something else by that name: say so, not "File exists".
+            if let Ok(m) = fs::metadata(&p) {
+                if !m.is_dir() {
+                    return Err(std::io::Error::other(format!(
+                        "{} is a file, not a directory: this is not a cache (move the file, or \
+                         give another --cache)",
+                        p.display()
+                    )))
+                    .io_context(|| format!("opening the cache at {}", root.display()))
+                    .map_err(StoreError::from);
+                }
+            }
             fs::create_dir_all(&p).io_context(|| {
                 format!(
                     "cannot create cache directory {} (is it writable?)",

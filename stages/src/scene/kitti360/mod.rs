@@ -174,7 +174,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     let rgb = load_each(
         &all,
         |k| image_path(p, k),
-        |path, k| parse::rgb(path, k.2, k.3),
+        |path, k| parse::rgb(path, (k.2, k.3, k.1)),
         true,
     )?;
     // Pseudo labels: every left image, and every fisheye image when the params name them.
@@ -189,7 +189,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
             (Some(pat), true) => p.path(pat, k.0, k.1),
             _ => p.path(&p.pseudo_labels, k.0, 0),
         },
-        |path, k| parse::labels(path, k.2, k.3),
+        |path, k| parse::labels(path, (k.2, k.3, k.1)),
         true,
     )?;
     progress.update(2, 4, "images");

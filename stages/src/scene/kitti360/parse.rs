@@ -479,35 +479,98 @@ pub fn bboxes(path: &Path, text: &str) -> Result<Vec<XmlObject>> {
     Ok(out)
 }
 
-/// Decodes a PNG; a missing, truncated or corrupt file is an error naming it.
+/// The size an image must have: width, height and the camera (0..3) whose calibration sets it.
+pub type Size = (u32, u32, u8);
+
+/// Width and height in a PNG's header (`None` when it has none).
+fn png_header_size(bytes: &[u8]) -> Option<(u32, u32)> {
+    let be = |i: usize| Some(u32::from_be_bytes(bytes.get(i..i + 4)?.try_into().ok()?));
+    (bytes.get(12..16) == Some(b"IHDR")).then_some(())?;
+    Some((be(16)?, be(20)?))
+}
+
+/// Decodes a PNG; a missing, truncated, corrupt or too large file is an error naming it.
 pub fn png(path: &Path) -> Result<image::DynamicImage> {
     let bytes = read_bytes(path)?;
-    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| {
-        err(
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).map_err(|e| match e {
+        image::ImageError::Limits(_) => {
+            let size = png_header_size(&bytes)
+                .map_or("its size".to_string(), |(w, h)| format!("{w}x{h} pixels"));
+            err(
+                path,
+                format!(
+                    "too large to decode: {size} is over the decoder's limit of 512 MiB of \
+                     pixels (a KITTI-360 image is 1408x376)"
+                ),
+            )
+        }
+        e => err(
             path,
             format!("not a readable PNG (truncated or corrupt?): {e}"),
-        )
+        ),
     })
 }
 
-fn check_size(path: &Path, img: &image::DynamicImage, w: u32, h: u32) -> Result<()> {
-    if (img.width(), img.height()) != (w, h) {
+/// Where the expected size of camera `camera`'s images comes from.
+fn size_source(camera: u8) -> String {
+    match camera {
+        0 | 1 => format!("S_rect_0{camera} in perspective.txt"),
+        c => format!("image_width and image_height in image_0{c}.yaml"),
+    }
+}
+
+fn check_size(path: &Path, img_w: u32, img_h: u32, (w, h, camera): Size) -> Result<()> {
+    if (img_w, img_h) != (w, h) {
         return Err(err(
             path,
             format!(
-                "image is {}x{}, expected {w}x{h} (S_rect_00 in perspective.txt)",
-                img.width(),
-                img.height()
+                "image is {img_w}x{img_h}, expected {w}x{h} ({})",
+                size_source(camera)
             ),
         ));
     }
     Ok(())
 }
 
+/// The indices of an 8-bit palette (indexed) PNG, as they are (`None` for any other PNG).
+fn palette_indices(path: &Path, bytes: &[u8]) -> Result<Option<(u32, u32, Vec<u8>)>> {
+    // IHDR's colour type (byte 25) is 3 for a palette image.
+    if bytes.get(25) != Some(&3) {
+        return Ok(None);
+    }
+    let bad = |e: png::DecodingError| {
+        err(
+            path,
+            format!("not a readable PNG (truncated or corrupt?): {e}"),
+        )
+    };
+    let mut d = png::Decoder::new(std::io::Cursor::new(bytes));
+    d.set_transformations(png::Transformations::IDENTITY);
+    let mut r = d.read_info().map_err(bad)?;
+    let info = r.info();
+    if info.color_type != png::ColorType::Indexed {
+        return Ok(None);
+    }
+    if info.bit_depth != png::BitDepth::Eight {
+        return Err(err(
+            path,
+            format!(
+                "a palette PNG with {}-bit indices: label ids need 8 bits (save it as an 8-bit \
+                 palette or single-channel PNG)",
+                info.bit_depth as u8
+            ),
+        ));
+    }
+    let mut buf = vec![0; r.output_buffer_size().unwrap_or(0)];
+    let frame = r.next_frame(&mut buf).map_err(bad)?;
+    buf.truncate(frame.buffer_size());
+    Ok(Some((frame.width, frame.height, buf)))
+}
+
 /// An 8-bit colour image as `w*h*3` RGB bytes (grey and RGBA are converted).
-pub fn rgb(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
+pub fn rgb(path: &Path, size: Size) -> Result<Vec<u8>> {
     let img = png(path)?;
-    check_size(path, &img, w, h)?;
+    check_size(path, img.width(), img.height(), size)?;
     use image::ColorType::*;
     match img.color() {
         Rgb8 | Rgba8 | L8 | La8 => Ok(img.into_rgb8().into_raw()),
@@ -518,21 +581,30 @@ pub fn rgb(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
     }
 }
 
-/// An 8-bit single-channel label map of KITTI-360 label ids; unknown ids are errors naming the
-/// pixel.
-pub fn labels(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
-    let img = png(path)?;
-    check_size(path, &img, w, h)?;
-    if img.color() != image::ColorType::L8 {
-        return Err(err(
-            path,
-            format!(
-                "expected an 8-bit single-channel label-id PNG, found {:?}",
-                img.color()
-            ),
-        ));
-    }
-    let v = img.into_luma8().into_raw();
+/// An 8-bit single-channel label map of KITTI-360 label ids (or an 8-bit palette PNG, whose
+/// indices are the ids); unknown ids are errors naming the pixel.
+pub fn labels(path: &Path, size: Size) -> Result<Vec<u8>> {
+    let w = size.0;
+    let v = match palette_indices(path, &read_bytes(path)?)? {
+        Some((pw, ph, v)) => {
+            check_size(path, pw, ph, size)?;
+            v
+        }
+        None => {
+            let img = png(path)?;
+            check_size(path, img.width(), img.height(), size)?;
+            if img.color() != image::ColorType::L8 {
+                return Err(err(
+                    path,
+                    format!(
+                        "expected an 8-bit single-channel (or palette) label-id PNG, found {:?}",
+                        img.color()
+                    ),
+                ));
+            }
+            img.into_luma8().into_raw()
+        }
+    };
     if let Some(i) = v.iter().position(|&l| crate::labels::by_id(l).is_none()) {
         return Err(err(
             path,
@@ -548,9 +620,9 @@ pub fn labels(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
 }
 
 /// A 16-bit single-channel PNG (instance maps `id*1000 + instance`, depth `metres*256`).
-pub fn gray16(path: &Path, w: u32, h: u32, what: &str) -> Result<Vec<u16>> {
+pub fn gray16(path: &Path, size: Size, what: &str) -> Result<Vec<u16>> {
     let img = png(path)?;
-    check_size(path, &img, w, h)?;
+    check_size(path, img.width(), img.height(), size)?;
     if img.color() != image::ColorType::L16 {
         return Err(err(
             path,

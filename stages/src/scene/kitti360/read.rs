@@ -229,7 +229,7 @@ pub(super) fn load_gt_semantic(p: &Kitti360Params, all: &[Key]) -> Result<Vec<Op
         Some(pat) => load_each(
             all,
             |k| p.path(&pat, k.0, k.1),
-            |path, k| parse::labels(path, k.2, k.3),
+            |path, k| parse::labels(path, (k.2, k.3, k.1)),
             false,
         )?,
         None => vec![None; all.len()],
@@ -243,8 +243,8 @@ pub(super) fn load_gt_instance(p: &Kitti360Params, all: &[Key]) -> Result<Vec<Op
         Some(pat) => load_each(
             all,
             |k| p.path(&pat, k.0, k.1),
-            |path, &(_, _, w, h)| {
-                let v = parse::gray16(path, w, h, "instance")?;
+            |path, &(_, c, w, h)| {
+                let v = parse::gray16(path, (w, h, c), "instance")?;
                 if let Some(i) = v.iter().position(|&x| {
                     labels::by_id((x as u32 / labels::INSTANCE_FACTOR) as u8).is_none()
                         || x as u32 / labels::INSTANCE_FACTOR > 255
@@ -315,7 +315,7 @@ pub(super) fn load_stereo_depth(
             left,
             |k| p.path(pat, k.0, 0),
             |path, _| {
-                let v = parse::gray16(path, w, h, "depth (metres * 256)")?;
+                let v = parse::gray16(path, (w, h, 0), "depth (metres * 256)")?;
                 Ok(v.iter().map(|&x| x as f32 / 256.0).collect::<Vec<f32>>())
             },
             true,

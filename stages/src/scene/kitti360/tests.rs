@@ -864,3 +864,85 @@ fn the_exported_bboxes_keep_every_object_apart_for_the_devkit() {
     }
     std::fs::remove_dir_all(root).unwrap();
 }
+
+/// CRC-32 of a PNG chunk's type and data (to forge a header).
+fn png_crc(bytes: &[u8]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}
+
+/// An 8-bit palette PNG of `w` x `h` indices.
+fn write_palette(path: &Path, w: u32, h: u32, indices: &[u8]) {
+    let f = std::fs::File::create(path).unwrap();
+    let mut e = png::Encoder::new(std::io::BufWriter::new(f), w, h);
+    e.set_color(png::ColorType::Indexed);
+    e.set_depth(png::BitDepth::Eight);
+    e.set_palette(
+        (0..=255u8)
+            .flat_map(|i| [i, 255 - i, i / 2])
+            .collect::<Vec<u8>>(),
+    );
+    e.write_header().unwrap().write_image_data(indices).unwrap();
+}
+
+#[test]
+fn png_messages_say_what_is_wrong_and_palette_labels_read_as_ids() {
+    // A palette pseudo label: its indices are the label ids.
+    let (root, p) = fixture("palette");
+    let pl = p.path(&p.pseudo_labels, 3, 0);
+    let mut ids = vec![labels::ROAD; 32];
+    ids[5] = labels::CAR;
+    write_palette(&pl, 8, 4, &ids);
+    let t = run(&p).unwrap();
+    let rows = tables::get_prim::<UInt32Type>(&t["pseudo_labels"], "pseudo_labels", "frame")
+        .unwrap()
+        .to_vec();
+    let row = rows.iter().position(|&f| f == 3).unwrap();
+    let got =
+        tables::get_list::<UInt8Type>(&t["pseudo_labels"], "pseudo_labels", "labels").unwrap();
+    assert_eq!(got.row(row), &ids[..]);
+    ids[9] = 200;
+    write_palette(&pl, 8, 4, &ids);
+    assert_error(
+        &p,
+        "image_00/0000000003.png",
+        &["pixel (1, 1)", "200 is not"],
+    );
+    std::fs::remove_dir_all(root).unwrap();
+
+    // A right-camera image of the wrong size names the right camera's calibration.
+    let (root, p) = fixture("rightsize");
+    crate::pngio::write_rgb8(&p.path(&p.images, 7, 1), 4, 4, &[9; 48]).unwrap();
+    assert_error(
+        &p,
+        "image_01/data_rect/0000000007.png",
+        &["image is 4x4, expected 8x4 (S_rect_01 in perspective.txt)"],
+    );
+    std::fs::remove_dir_all(root).unwrap();
+
+    // A header claiming 20000 x 20000 pixels: refused as too large, with its size.
+    let (root, p) = fixture("huge");
+    let img = p.path(&p.images, 7, 0);
+    let mut bytes = std::fs::read(&img).unwrap();
+    bytes[16..20].copy_from_slice(&20000u32.to_be_bytes());
+    bytes[20..24].copy_from_slice(&20000u32.to_be_bytes());
+    let crc = png_crc(&bytes[12..29]);
+    bytes[29..33].copy_from_slice(&crc.to_be_bytes());
+    std::fs::write(&img, &bytes).unwrap();
+    assert_error(
+        &p,
+        "image_00/data_rect/0000000007.png",
+        &["too large to decode: 20000x20000 pixels"],
+    );
+    std::fs::remove_dir_all(root).unwrap();
+}
