@@ -17,6 +17,18 @@ pub const FILES_SLOT: &str = "@files";
 /// `runner::parent`).
 pub const PARENT_SLOT: &str = "@parent";
 
+/// `params` without the kind's update-only params ([`stages::Stage::update_only_params`]): what
+/// a run from scratch is keyed by, and what a parent's params must equal.
+pub fn recipe(kind: &dyn stages::Stage, params: &serde_json::Value) -> serde_json::Value {
+    let mut v = params.clone();
+    if let serde_json::Value::Object(m) = &mut v {
+        for name in kind.update_only_params() {
+            m.remove(*name);
+        }
+    }
+    v
+}
+
 /// Hex blake3 of the canonical description of a stage run.
 pub fn stage_key(
     kind: &str,
@@ -78,5 +90,26 @@ mod tests {
         assert_eq!(stage_key("k", 1, &a, &none), stage_key("k", 1, &b, &none));
         assert_ne!(stage_key("k", 1, &a, &none), stage_key("k", 1, &c, &none));
         assert_ne!(stage_key("k", 1, &a, &none), stage_key("k", 2, &a, &none));
+    }
+
+    /// A run from scratch is keyed without the params that only say how to update: setting
+    /// them leaves every cached entry current; any other param changes the key.
+    #[test]
+    fn update_only_params_stay_out_of_the_recipe() {
+        let train = stages::kinds::registry()
+            .into_iter()
+            .find(|k| k.kind() == "train")
+            .unwrap();
+        let none = BTreeMap::new();
+        let key = |v: serde_json::Value| {
+            let p = train.canonical_params(&v).unwrap();
+            stage_key("train", 1, &recipe(train.as_ref(), &p), &none)
+        };
+        let plain = key(serde_json::json!({}));
+        assert_eq!(
+            key(serde_json::json!({"update": {"iterations": 50}})),
+            plain
+        );
+        assert_ne!(key(serde_json::json!({"seed": 3})), plain);
     }
 }

@@ -229,5 +229,8 @@ fn a_cache_directory_that_is_a_file_is_named() {
         err.contains("objects is a file, not a directory: this is not a cache"),
         "{err}"
     );
-    assert!(!err.contains("File exists") && !err.contains("panicked"), "{err}");
+    assert!(
+        !err.contains("File exists") && !err.contains("panicked"),
+        "{err}"
+    );
 }

@@ -81,15 +81,7 @@ pub fn find_parent(
     }
     let rec = store.run_record(&s.name).ok_or(None)?;
     // Params that only say how to update may differ from the parent's.
-    let recipe = |v: &serde_json::Value| {
-        let mut v = v.clone();
-        if let serde_json::Value::Object(m) = &mut v {
-            for name in s.kind.update_only_params() {
-                m.remove(*name);
-            }
-        }
-        v
-    };
+    let recipe = |v| fingerprint::recipe(s.kind.as_ref(), v);
     if rec.kind != s.kind.kind()
         || rec.version != s.kind.version()
         || recipe(&rec.params) != recipe(&s.params)
@@ -215,19 +207,8 @@ pub fn updated_key(
         .iter()
         .map(|(k, v)| (k.clone(), v.digest.clone()))
         .collect();
-    // The params that say how to update are part of an update's key even at their defaults
-    // (the stage's key leaves them out then): another default is another update.
-    let mut params = s.params.clone();
-    if let (serde_json::Value::Object(m), serde_json::Value::Object(d)) =
-        (&mut params, s.kind.default_params())
-    {
-        for name in s.kind.update_only_params() {
-            if let (false, Some(v)) = (m.contains_key(*name), d.get(*name)) {
-                m.insert(name.to_string(), v.clone());
-            }
-        }
-    }
-    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &params, &by_digest);
+    // An update's key holds every param, those that say how to update included.
+    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &s.params, &by_digest);
     (key, inputs)
 }
 

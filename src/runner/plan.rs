@@ -126,7 +126,8 @@ pub(super) fn key_of(
         .iter()
         .map(|(k, v)| (k.clone(), v.digest.clone()))
         .collect();
-    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &s.params, &by_digest);
+    let params = fingerprint::recipe(s.kind.as_ref(), &s.params);
+    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &params, &by_digest);
     Some((key, inputs))
 }
 

@@ -242,7 +242,8 @@ pub trait Stage: Send + Sync {
     /// Whether this kind can update a previous run's outputs (see [`Stage::update`]).
     fn updates(&self) -> bool;
     /// Top-level params that change only how an update works, nothing a run from scratch
-    /// writes ([`TypedStage::KEYLESS_DEFAULTS`]): a parent may have run with other values.
+    /// writes ([`TypedStage::UPDATE_ONLY`]): no part of a run from scratch's key, and a parent
+    /// may have run with other values.
     fn update_only_params(&self) -> &'static [&'static str];
     /// Whether [`Stage::update`] can start from a previous run whose inputs differ from the
     /// current ones in `changed` and relate to them as `lineage` says; if not, why (the runner
@@ -282,11 +283,11 @@ pub trait TypedStage: Send + Sync {
     const MOVED: &'static [(&'static str, &'static str)] = &[];
     /// See [`Stage::updates`]; a kind that sets it implements [`TypedStage::update`].
     const UPDATES: bool = false;
-    /// Top-level params left out of the canonical params (so of the cache key) while they hold
-    /// their defaults: params added later that change nothing a run from scratch writes (how an
-    /// update works), so adding them leaves every cached entry current. A parent may have run
-    /// with other values of them ([`Stage::update_only_params`]).
-    const KEYLESS_DEFAULTS: &'static [&'static str] = &[];
+    /// Top-level params that say only how an update works and change nothing a run from scratch
+    /// writes: left out of the key of a run from scratch (so setting them, or adding them to a
+    /// kind, leaves every cached entry current), part of an update's key, and a parent may have
+    /// run with other values of them ([`Stage::update_only_params`]).
+    const UPDATE_ONLY: &'static [&'static str] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -376,15 +377,7 @@ impl<T: TypedStage> Stage for T {
     fn canonical_params(&self, params: &Value) -> Result<Value> {
         let p: T::Params = typed_params(params)?;
         T::validate(&p)?;
-        let mut v = serde_json::to_value(&p).map_err(|e| StageError::Params(e.to_string()))?;
-        if let (Value::Object(m), Value::Object(d)) = (&mut v, self.default_params()) {
-            for name in T::KEYLESS_DEFAULTS {
-                if m.get(*name) == d.get(*name) {
-                    m.remove(*name);
-                }
-            }
-        }
-        Ok(v)
+        serde_json::to_value(&p).map_err(|e| StageError::Params(e.to_string()))
     }
     fn run(&self, params: &Value, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
         let p: T::Params = typed_params(params)?;
@@ -408,7 +401,7 @@ impl<T: TypedStage> Stage for T {
         T::UPDATES
     }
     fn update_only_params(&self) -> &'static [&'static str] {
-        T::KEYLESS_DEFAULTS
+        T::UPDATE_ONLY
     }
     fn can_update(
         &self,

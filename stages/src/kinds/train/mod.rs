@@ -59,7 +59,7 @@ impl TypedStage for Train {
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
     const BUDGET_PARAM: Option<&'static str> = Some("schedule.iterations");
     const UPDATES: bool = true;
-    const KEYLESS_DEFAULTS: &'static [&'static str] = &["update"];
+    const UPDATE_ONLY: &'static [&'static str] = &["update"];
     const MOVED: &'static [(&'static str, &'static str)] = params::MOVED;
 
     fn validate(p: &TrainParams) -> Result<()> {
@@ -147,15 +147,16 @@ mod tests {
         s.validate().unwrap();
     }
 
-    /// The `update` group enters the canonical params (the cache key) only when it is not the
-    /// default, so the key of every train stage cached before it existed stays the same.
+    /// The `update` group says only how an update works: the kind names it update-only (the
+    /// runner leaves it out of a run from scratch's key), and the canonical params keep its
+    /// values, which the stage needs when it updates.
     #[test]
-    fn default_update_params_stay_out_of_the_key() {
+    fn update_params_are_update_only_and_reach_the_stage() {
         use crate::Stage;
+        assert_eq!(Train.update_only_params(), &["update"]);
         let canonical = |v: serde_json::Value| Train.canonical_params(&v).unwrap();
         let plain = canonical(serde_json::json!({}));
-        assert!(plain.get("update").is_none(), "{plain}");
-        assert!(plain.get("schedule").is_some());
+        assert_eq!(plain["update"]["iterations"], 400);
         let set = canonical(serde_json::json!({"update": {"iterations": 50}}));
         assert_eq!(set["update"]["iterations"], 50);
         assert_eq!(

@@ -44,8 +44,10 @@ pub(super) fn update(
 ) -> Result<Updated> {
     p.update.validate()?;
     let rays = training_rays(p, inputs)?;
+    // Read once and dropped (not kept whole for the run): memory stays that of a cold run.
+    let weights_table = previous.output("weights")?;
     let (info, before) = weights::read(
-        previous.output("weights")?.whole()?,
+        &weights_table.rows(0..weights_table.num_rows(), None)?,
         previous.output("model")?.whole()?,
     )?;
     if info.classes != rays.prims.classes {
