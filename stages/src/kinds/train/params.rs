@@ -177,7 +177,8 @@ impl Default for UpdateParams {
         Self {
             iterations: 400,
             edited_share: 0.5,
-            lr_factor: 0.1,
+            // 0.3: a moved box's geometry needs it at full size (docs/experiments/edits.md).
+            lr_factor: 0.3,
         }
     }
 }
