@@ -171,12 +171,7 @@ pub fn measure(
     let (before, after) = (open(store, &e.before)?, open(store, &e.after)?);
     let ((old, old_t), (new, new_t)) = (primitives(&before)?, primitives(&after)?);
     let changes = PrimitiveChanges::between(old_t, new_t).map_err(bench_err)?;
-    let changed: Vec<Primitive> = changes
-        .removed
-        .iter()
-        .map(|&o| old[o as usize].clone())
-        .chain(changes.added.iter().map(|&n| new[n as usize].clone()))
-        .collect();
+    let changed = changes.extents(&old, &new);
     let cams = geometry::cameras_from_table(table(&after, "cameras")?.whole().map_err(bench_err)?)
         .map_err(bench_err)?;
     let (gt_sem, gt_inst) = (table(&after, "gt_semantic")?, table(&after, "gt_instance")?);

@@ -58,6 +58,17 @@ impl PrimitiveChanges {
         self.removed.is_empty() && self.added.is_empty()
     }
 
+    /// The changed primitives' extents: the old ones that went (`old`: the old table's
+    /// primitives) and the new ones that came (`new`); a pixel whose ray meets none of them
+    /// sees no change.
+    pub fn extents(&self, old: &[Primitive], new: &[Primitive]) -> Vec<Primitive> {
+        self.removed
+            .iter()
+            .map(|&o| old[o as usize].clone())
+            .chain(self.added.iter().map(|&n| new[n as usize].clone()))
+            .collect()
+    }
+
     /// Whether an unchanged primitive has a new id.
     pub fn renumbers(&self) -> bool {
         self.old_to_new

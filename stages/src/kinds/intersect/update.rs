@@ -12,7 +12,7 @@ use arrow::{
     record_batch::RecordBatch,
 };
 
-use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, Primitive, PrimitiveChanges};
+use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, PrimitiveChanges};
 use crate::intervals::{plan_image, plan_row, IntersectParams};
 use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
 use crate::tables;
@@ -64,13 +64,7 @@ pub(super) fn update(
     let changes = PrimitiveChanges::between(old_table, new_table)?;
     let old = geometry::primitives_from_table(old_table)?;
     let prims = geometry::primitives_from_table(new_table)?;
-    let changed: Vec<&Primitive> = changes
-        .removed
-        .iter()
-        .map(|&o| &old[o as usize])
-        .chain(changes.added.iter().map(|&n| &prims[n as usize]))
-        .collect();
-    let mut view = ChangeView::new(changed.iter().copied());
+    let mut view = ChangeView::new(&changes.extents(&old, &prims));
     let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let rows = selected_rows(&rows, p)?;
     let before = previous.output("ray_intervals")?;

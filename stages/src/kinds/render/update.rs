@@ -59,12 +59,7 @@ pub(super) fn update(
         });
     }
     let changes = PrimitiveChanges::between(old_table, new_table)?;
-    let changed: Vec<Primitive> = changes
-        .removed
-        .iter()
-        .map(|&o| old[o as usize].clone())
-        .chain(changes.added.iter().map(|&n| new[n as usize].clone()))
-        .collect();
+    let changed = changes.extents(&old, &new);
     let maps = previous.output("label_maps")?;
     let previously = Previously {
         maps,

@@ -62,12 +62,7 @@ pub(super) fn update(
     let changes = PrimitiveChanges::between(old_table, inputs.table("scene", "primitives")?)?;
     let old = geometry::primitives_from_table(old_table)?;
     let new = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
-    let changed: Vec<Primitive> = changes
-        .removed
-        .iter()
-        .map(|&o| old[o as usize].clone())
-        .chain(changes.added.iter().map(|&n| new[n as usize].clone()))
-        .collect();
+    let changed = changes.extents(&old, &new);
     let all = candidates(&rays, &p.cameras);
     if all.is_empty() {
         return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));

@@ -597,7 +597,8 @@ pub fn labels(path: &Path, size: Size) -> Result<Vec<u8>> {
                 return Err(err(
                     path,
                     format!(
-                        "expected an 8-bit single-channel (or palette) label-id PNG, found {:?}",
+                        "expected an 8-bit single-channel label-id PNG (or an 8-bit palette PNG of \
+                         label ids), found {:?}",
                         img.color()
                     ),
                 ));
