@@ -99,11 +99,14 @@ pub fn load(spec: &str) -> Result<Option<EditsSuite>, ConfigError> {
             (file, text)
         }
     };
-    let doc: Yaml = serde_yaml::from_str(&text)
-        .map_err(|e| error(&file, None, format!("invalid YAML: {e}")))?;
-    if doc.get("edits").is_none() {
+    // Only a document with an `edits:` list is an edits suite; any other (or invalid YAML) is
+    // left to the other suites' parser, which locates its errors.
+    let Some(doc) = serde_yaml::from_str::<Yaml>(&text)
+        .ok()
+        .filter(|d| d.get("edits").is_some())
+    else {
         return Ok(None);
-    }
+    };
     let suite: EditsSuite = serde_yaml::from_value(doc)
         .map_err(|e| error(&file, None, format!("not an edits suite: {e}")))?;
     check(&file, &suite)?;
