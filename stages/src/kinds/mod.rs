@@ -3,6 +3,7 @@
 //! another kind (what two kinds share lives in the library).
 
 pub mod aggregate;
+mod edited;
 pub mod evaluate;
 pub mod intersect;
 pub mod kitti360_scene;

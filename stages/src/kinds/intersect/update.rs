@@ -14,6 +14,7 @@ use arrow::{
 
 use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, PrimitiveChanges};
 use crate::intervals::{plan_image, plan_row, IntersectParams};
+use crate::kinds::edited::Edited;
 use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
 use crate::tables;
 use rayon::prelude::*;
@@ -59,30 +60,27 @@ pub(super) fn update(
     previous: &Previous,
     progress: &dyn Progress,
 ) -> Result<Updated> {
-    let old_table = previous.input("scene", "primitives")?.whole()?;
-    let new_table = inputs.table("scene", "primitives")?;
-    let changes = PrimitiveChanges::between(old_table, new_table)?;
-    let old = geometry::primitives_from_table(old_table)?;
-    let prims = geometry::primitives_from_table(new_table)?;
-    let mut view = ChangeView::new(&changes.extents(&old, &prims));
+    let edited = Edited::read(previous, inputs)?;
+    let mut view = ChangeView::new(&edited.extents());
+    let (changes, prims) = (&edited.changes, &edited.new);
     let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let rows = selected_rows(&rows, p)?;
     let before = previous.output("ray_intervals")?;
     let before_rows = before.image_rows()?;
-    let bvh = Bvh::build(&prims);
+    let bvh = Bvh::build(prims);
     let mut out = inputs.writer("ray_intervals")?;
     let (total, mut redone) = (rows.len(), 0usize);
     let sees: Vec<bool> = rows.iter().map(|r| view.seen_by(&r.cam, p.far)).collect();
     // The previous row (renumbered) where the image cannot see the change, else planned again.
     let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<(RecordBatch, bool)> {
         let reused = match before_rows.get(&(row.frame, row.camera)) {
-            Some(&r) if !sees_change => renumbered(&before.row(r)?, &changes)?,
+            Some(&r) if !sees_change => renumbered(&before.row(r)?, changes)?,
             _ => None,
         };
         Ok(match reused {
             Some(batch) => (batch, false),
             None => (
-                plan_row(row, plan_image(&prims, &bvh, &row.cam, p), p)?,
+                plan_row(row, plan_image(prims, &bvh, &row.cam, p), p)?,
                 true,
             ),
         })
@@ -108,12 +106,12 @@ pub(super) fn update(
     progress.update(total as u64, total as u64, "done");
     let mut tables = Tables::new();
     out.finish_into(&mut tables)?;
-    let edited = changes.removed.len().max(changes.added.len());
+    let n_changed = changes.removed.len().max(changes.added.len());
     Ok(Updated {
         tables,
         redone: format!(
-            "{redone} of {total} images intersected again ({edited} primitive{} changed)",
-            if edited == 1 { "" } else { "s" }
+            "{redone} of {total} images intersected again ({n_changed} primitive{} changed)",
+            if n_changed == 1 { "" } else { "s" }
         ),
     })
 }

@@ -7,7 +7,8 @@
 
 use super::images::{render_all, Previously};
 use super::params::RenderParams;
-use crate::geometry::{self, changes::ChangeView, Primitive, PrimitiveChanges};
+use crate::geometry::{changes::ChangeView, Primitive};
+use crate::kinds::edited::Edited;
 use crate::sampling::PrimInfo;
 use crate::stage::{Changed, Inputs, Lineage, Previous, Progress, Result, Updated};
 
@@ -47,19 +48,15 @@ pub(super) fn update(
     previous: &Previous,
     progress: &dyn Progress,
 ) -> Result<Updated> {
-    let old_table = previous.input("scene", "primitives")?.whole()?;
-    let new_table = inputs.table("scene", "primitives")?;
-    let old = geometry::primitives_from_table(old_table)?;
-    let new = geometry::primitives_from_table(new_table)?;
-    if let Some(why) = render_whole(&old, &new) {
+    let edited = Edited::read(previous, inputs)?;
+    if let Some(why) = render_whole(&edited.old, &edited.new) {
         let (tables, _) = render_all(p, inputs, progress, None)?;
         return Ok(Updated {
             tables,
             redone: format!("every image rendered again: {why}"),
         });
     }
-    let changes = PrimitiveChanges::between(old_table, new_table)?;
-    let changed = changes.extents(&old, &new);
+    let changed = edited.extents();
     let maps = previous.output("label_maps")?;
     let previously = Previously {
         maps,

@@ -10,10 +10,10 @@ use super::fit::{
 };
 use super::params::TrainParams;
 use crate::geometry::{
-    self,
     changes::{pixels_meeting, ChangeView},
-    Primitive, PrimitiveChanges,
+    Primitive,
 };
+use crate::kinds::edited::Edited;
 use crate::model::{weights, BatchOrder};
 use crate::stage::{Changed, Inputs, Lineage, Previous, Progress, Result, StageError, Updated};
 
@@ -58,11 +58,7 @@ pub(super) fn update(
             redone: "trained from scratch (the scene's classes changed)".into(),
         });
     }
-    let old_table = previous.input("scene", "primitives")?.whole()?;
-    let changes = PrimitiveChanges::between(old_table, inputs.table("scene", "primitives")?)?;
-    let old = geometry::primitives_from_table(old_table)?;
-    let new = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
-    let changed = changes.extents(&old, &new);
+    let changed = Edited::read(previous, inputs)?.extents();
     let all = candidates(&rays, &p.cameras);
     if all.is_empty() {
         return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
