@@ -3,7 +3,6 @@
 //! a [`CliError`] says which by its variant.
 
 use std::{
-    collections::BTreeSet,
     path::{Path, PathBuf},
     sync::Arc,
 };
@@ -12,6 +11,7 @@ use anyhow::{anyhow, Context};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use clap::{Args, Parser, Subcommand};
 
+mod gc;
 mod kinds;
 
 use crate::{
@@ -21,7 +21,7 @@ use crate::{
     error::Classify,
     executor::{self, ExecOptions, ExecutorError, ExecutorKind},
     runner::{self, Outcome, RunError, RunOptions, State},
-    store::{Entry, Manifest, RunLock, Store, StoreError},
+    store::{Entry, Manifest, Store, StoreError},
 };
 
 /// Why a command failed: bad usage or configuration (exit code 2) or a failure while working
@@ -50,6 +50,17 @@ pub enum CliError {
 impl From<ExecutorError> for CliError {
     fn from(e: ExecutorError) -> CliError {
         CliError::Executor(Box::new(e))
+    }
+}
+
+impl From<gc::GcError> for CliError {
+    fn from(e: gc::GcError) -> CliError {
+        match e {
+            gc::GcError::Config(e) => CliError::Config(e),
+            gc::GcError::Run(e) => CliError::Run(e),
+            gc::GcError::Store(e) => CliError::Store(e),
+            e @ gc::GcError::ReadOnly { .. } => CliError::Other(e.into()),
+        }
     }
 }
 
@@ -207,7 +218,8 @@ pub enum Command {
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
-    /// Remove cache entries the current pipeline does not reach.
+    /// Remove cache entries that no pipeline file which ran in the cache reaches (each is read
+    /// as it stands now; one that cannot be read keeps what its last run reached).
     Gc {
         /// Also keep every entry any stage instance has ever produced.
         #[arg(long)]
@@ -215,6 +227,9 @@ pub enum Command {
         /// Only list what would be removed.
         #[arg(long)]
         dry_run: bool,
+        /// Keep only what the `-f` pipeline reaches: removes every other pipeline's entries.
+        #[arg(long)]
+        only_this_pipeline: bool,
         #[command(flatten)]
         pipeline: PipelineArgs,
     },
@@ -365,8 +380,16 @@ pub fn dispatch(cli: Cli) -> Result<i32> {
         Command::Gc {
             keep_all_runs,
             dry_run,
+            only_this_pipeline,
             pipeline,
-        } => cmd_gc(&load(&pipeline)?, keep_all_runs, dry_run),
+        } => Ok(gc::run(
+            &load(&pipeline)?,
+            &gc::GcOptions {
+                keep_all_runs,
+                dry_run,
+                only_this_pipeline,
+            },
+        )?),
         Command::Bench {
             suite,
             out,
@@ -625,33 +648,6 @@ fn cmd_export(p: &Pipeline, stage: &str, to: &Path) -> Result<i32> {
     } else {
         println!("wrote {} files under {}", files.len(), to.display());
     }
-    Ok(0)
-}
-
-fn cmd_gc(p: &Pipeline, keep_all_runs: bool, dry_run: bool) -> Result<i32> {
-    let dag = Dag::build(p)?;
-    let store = Store::open(&p.cache_dir)?;
-    let _lock = RunLock::acquire(store.root(), false, true)?;
-    let res = runner::resolve(p, &dag, &store, false)?;
-    let mut keep: BTreeSet<String> = res
-        .iter()
-        .filter(|r| matches!(r.state, State::Fresh(_)))
-        .filter_map(|r| r.key.clone())
-        .collect();
-    if keep_all_runs {
-        for rec in store.run_records().into_values() {
-            keep.extend(rec.history);
-            keep.insert(rec.key);
-        }
-    }
-    let (removed, bytes) = store.gc(&keep, dry_run)?;
-    println!(
-        "{} {} entries ({}), kept {}",
-        if dry_run { "would remove" } else { "removed" },
-        removed.len(),
-        runner::fmt_bytes(bytes),
-        store.keys().len()
-    );
     Ok(0)
 }
 

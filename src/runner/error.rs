@@ -47,6 +47,19 @@ pub enum RunError {
         #[source]
         source: stages::StageError,
     },
+    /// A stage is stale and the cache cannot be written: only a fully cached run works on it.
+    #[error(
+        "stage `{stage}` would have to run ({reason}), but the cache at {} is read-only \
+         ({why}): a run whose stages are all cached works on it; to compute, give a writable \
+         cache (`--cache DIR`)",
+        .cache.display()
+    )]
+    ReadOnly {
+        cache: PathBuf,
+        why: String,
+        stage: String,
+        reason: String,
+    },
     #[error(transparent)]
     Store(#[from] StoreError),
     #[error("stage thread panicked: {0}")]
@@ -75,6 +88,7 @@ impl Classify for RunError {
             | RunError::NoSuchStage { .. }
             | RunError::UntilAndOnly
             | RunError::NotUpToDate { .. } => true,
+            RunError::ReadOnly { .. } => false,
             RunError::ExternalInputs { .. }
             | RunError::Store(_)
             | RunError::Panicked(_)

@@ -46,8 +46,16 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport, RunEr
     } else {
         Some(RunLock::acquire(store.root(), opts.no_wait, false)?)
     };
-    if !opts.dry_run {
+    let writes = !opts.dry_run && store.read_only().is_none();
+    // The pipeline file is known to the cache from its first run on (gc keeps what it reaches).
+    let known_as = writes
+        .then(|| std::fs::canonicalize(&p.file).ok())
+        .flatten();
+    if writes {
         store.clean_tmp();
+        if let Some(file) = &known_as {
+            let _ = store.record_pipeline(file, None);
+        }
     }
     let external = external_digests(&p, &store)?;
     let mut schedule = Scheduler::new(&p, &dag, &store, opts, selected, external);
@@ -60,11 +68,20 @@ pub async fn run(p: Arc<Pipeline>, opts: &RunOptions) -> Result<RunReport, RunEr
         schedule.finish(joined.map_err(|e| RunError::Panicked(e.to_string()))?)?;
     }
     let rep = schedule.into_report(t0.elapsed().as_secs_f64());
-    if !opts.dry_run {
+    if writes {
         // Best effort (the summary is printed too), but never a half-written file.
         let path = store.root().join("runs").join("last-run.json");
         if let Ok(json) = serde_json::to_vec_pretty(&rep) {
             let _ = write_atomic(&path, &json);
+        }
+        if let Some(file) = &known_as {
+            let reached = rep
+                .stages
+                .iter()
+                .filter(|s| matches!(s.outcome, Outcome::Cached | Outcome::Ran | Outcome::Updated))
+                .filter_map(|s| s.key.clone())
+                .collect();
+            let _ = store.record_pipeline(file, Some(reached));
         }
     }
     Ok(rep)

@@ -261,6 +261,14 @@ impl<'a> Scheduler<'a> {
             self.done.insert(i);
             return Ok(true);
         }
+        if let Some(why) = self.store.read_only() {
+            return Err(RunError::ReadOnly {
+                cache: self.store.root().to_path_buf(),
+                why: why.to_string(),
+                stage: p.stages[i].name.clone(),
+                reason,
+            });
+        }
         if self.in_flight.len() >= self.opts.jobs.max(1) {
             return Ok(false);
         }
@@ -354,6 +362,7 @@ impl<'a> Scheduler<'a> {
             // Keep status explanations current even when the entry came from elsewhere.
             let name = &p.stages[i].name;
             if !self.opts.dry_run
+                && self.store.read_only().is_none()
                 && self.store.run_record(name).map(|r| r.key).as_deref() != Some(key)
             {
                 let rec = run_record(p, i, key.into(), inputs.clone());

@@ -315,7 +315,15 @@ impl Store {
         manifest: &Manifest,
     ) -> Result<Manifest, StoreError> {
         let dest = self.entry_dir(key);
-        match fs::rename(tmp, &dest) {
+        let objects = self.dir("objects");
+        let mut renamed = fs::rename(tmp, &dest);
+        if renamed.is_err() && !objects.is_dir() && tmp.is_dir() {
+            // objects/ was removed while this run worked (a clean-up by hand): lay it out again.
+            fs::create_dir_all(&objects)
+                .io_context(|| format!("creating {}", objects.display()))?;
+            renamed = fs::rename(tmp, &dest);
+        }
+        match renamed {
             Ok(()) => {
                 fsync_dir(&self.dir("objects"))?;
                 Ok(manifest.clone())
@@ -349,20 +357,19 @@ impl Store {
         keys
     }
 
-    /// Removes every entry not in `keep`; returns (entries removed, bytes freed).
+    /// Removes every entry not in `keep` (with `dry_run`, none): each one's key and size.
     pub fn gc(
         &self,
         keep: &BTreeSet<String>,
         dry_run: bool,
-    ) -> Result<(Vec<String>, u64), StoreError> {
+    ) -> Result<Vec<(String, u64)>, StoreError> {
         let mut removed = Vec::new();
-        let mut bytes = 0;
         for key in self.keys() {
             if keep.contains(&key) {
                 continue;
             }
             let dir = self.entry_dir(&key);
-            bytes += dir_size(&dir);
+            let bytes = dir_size(&dir);
             if !dry_run {
                 // Rename first so a concurrent reader never sees a half-deleted entry.
                 let doomed = self.dir("tmp").join(owned_name(&format!("gc.{key}")));
@@ -370,13 +377,18 @@ impl Store {
                 fs::remove_dir_all(&doomed)
                     .io_context(|| format!("removing {}", doomed.display()))?;
             }
-            removed.push(key);
+            removed.push((key, bytes));
         }
         if !dry_run {
             let _ = fs::remove_dir_all(self.dir("trash"));
             let _ = fs::create_dir_all(self.dir("trash"));
         }
-        Ok((removed, bytes))
+        Ok(removed)
+    }
+
+    /// The manifest of entry `key`, unverified (for listings), or `None`.
+    pub fn manifest_of(&self, key: &str) -> Option<Manifest> {
+        self.read_manifest(key).ok()
     }
 }
 

@@ -41,6 +41,15 @@ pub(super) fn pid_alive(pid: u32) -> bool {
     r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
 }
 
+/// Whether `e` says writing is not allowed here (a read-only mount, no permission), as opposed
+/// to a missing path or a full disk.
+pub(super) fn refused(e: &std::io::Error) -> bool {
+    matches!(
+        e.raw_os_error(),
+        Some(libc::EROFS) | Some(libc::EACCES) | Some(libc::EPERM)
+    )
+}
+
 /// `NAME~PID~HOST~NANOS`: a temporary name that says who made it.
 pub(super) fn owned_name(name: &str) -> String {
     format!(

@@ -17,7 +17,7 @@ use std::{
 
 use super::{
     error::StoreError,
-    files::{host_name, is_leftover, owned_name, pid_alive, STALE_LOCK_S},
+    files::{host_name, is_leftover, owned_name, pid_alive, refused, STALE_LOCK_S},
     layout::Store,
 };
 use crate::error::{IoContext, IoError};
@@ -25,13 +25,16 @@ use crate::error::{IoContext, IoError};
 /// How often a held [`KeyLock`] refreshes its file's mtime.
 const HEARTBEAT_S: u64 = 20;
 
-/// The content of a lock file: `PID HOST NONCE`, and its inode and age.
+/// The content of a lock file: `PID HOST NONCE START`, and its inode and age.
 struct LockHolder {
     /// `None` when the file does not hold `PID HOST NONCE` (empty, truncated, garbage): a lock
     /// is linked into place only once its content is written and synced, so such a file was
     /// never a live lock.
     pid: Option<u32>,
     host: String,
+    /// When the holder started ([`process_start`]): tells the holder from a later process that
+    /// reuses its pid. `None` in a lock without it (written by an older `pipe`).
+    start: Option<u64>,
     ino: u64,
     age_s: f64,
 }
@@ -44,6 +47,7 @@ impl LockHolder {
         let pid = it.next().and_then(|p| p.parse().ok()).filter(|&p| p > 0);
         let host = it.next().unwrap_or("?").to_string();
         let pid = pid.filter(|_| it.next().is_some());
+        let start = it.next().and_then(|s| s.parse().ok());
         let age_s = meta
             .modified()
             .ok()
@@ -52,15 +56,30 @@ impl LockHolder {
         Some(LockHolder {
             pid,
             host,
+            start,
             ino: meta.ino(),
             age_s,
         })
     }
 
     fn is_stale(&self) -> bool {
-        match self.pid {
-            None => true,
-            Some(pid) => (self.host == host_name() && !pid_alive(pid)) || self.age_s > STALE_LOCK_S,
+        let Some(pid) = self.pid else {
+            return true;
+        };
+        if self.age_s > STALE_LOCK_S {
+            return true;
+        }
+        if self.host != host_name() {
+            return false;
+        }
+        if !pid_alive(pid) {
+            return true;
+        }
+        match self.start {
+            // A live process by that pid that started at another time reuses the pid.
+            Some(start) => process_start(pid).is_some_and(|now| now != start),
+            // No start time to tell: a live holder refreshes the file every HEARTBEAT_S.
+            None => self.age_s > 3.0 * HEARTBEAT_S as f64,
         }
     }
 
@@ -124,14 +143,7 @@ impl Store {
     /// that are gone (on this host) or silent for [`STALE_LOCK_S`]. Other runs' live work is
     /// left alone, so this is safe while they run.
     pub fn clean_tmp(&self) -> usize {
-        let mut n = 0;
-        if let Ok(rd) = fs::read_dir(self.dir("tmp")) {
-            for e in rd.filter_map(|e| e.ok()) {
-                if is_leftover(&e.path()) && fs::remove_dir_all(e.path()).is_ok() {
-                    n += 1;
-                }
-            }
-        }
+        let mut n = self.remove_tmp_leftovers();
         if let Ok(rd) = fs::read_dir(self.dir("locks")) {
             for e in rd.filter_map(|e| e.ok()) {
                 let name = e.file_name().to_string_lossy().into_owned();
@@ -142,6 +154,26 @@ impl Store {
                         n += 1;
                     }
                 }
+            }
+        }
+        n
+    }
+
+    /// Removes the temporary entries of processes that are gone: how many.
+    fn remove_tmp_leftovers(&self) -> usize {
+        let mut n = 0;
+        if let Ok(rd) = fs::read_dir(self.dir("tmp")) {
+            for e in rd.filter_map(|e| e.ok()) {
+                let path = e.path();
+                if !is_leftover(&path) {
+                    continue;
+                }
+                let removed = if path.is_dir() {
+                    fs::remove_dir_all(&path)
+                } else {
+                    fs::remove_file(&path)
+                };
+                n += usize::from(removed.is_ok());
             }
         }
         n
@@ -172,6 +204,8 @@ impl Store {
             return None;
         }
         let _ = fs::remove_file(&aside);
+        // What the dead holder was writing is of no use to anyone.
+        self.remove_tmp_leftovers();
         Some(holder.describe())
     }
 
@@ -183,7 +217,9 @@ impl Store {
         let path = self.lock_path(key);
         let nonce = owned_name("lock");
         let uniq = dir.join(format!(".{key}.{nonce}"));
-        let content = format!("{} {} {nonce}\n", std::process::id(), host_name());
+        let me = std::process::id();
+        let start = process_start(me).unwrap_or(0);
+        let content = format!("{me} {} {nonce} {start}\n", host_name());
         let written = File::create(&uniq)
             .and_then(|mut f| f.write_all(content.as_bytes()).and_then(|()| f.sync_all()))
             .io_context(|| format!("writing lock file {} (disk full?)", uniq.display()));
@@ -245,6 +281,15 @@ impl Store {
     }
 }
 
+/// When process `pid` started (clock ticks after boot, `/proc/PID/stat` field 22), or `None`
+/// where that cannot be read.
+fn process_start(pid: u32) -> Option<u64> {
+    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    // The command name (field 2) may hold spaces and parentheses: count from its end.
+    let after = &stat[stat.rfind(')')? + 1..];
+    after.split_whitespace().nth(19)?.parse().ok()
+}
+
 /// Links our unique file `uniq` as the lock `path`: whether we got the lock.
 fn link_lock(uniq: &Path, path: &Path, content: &str) -> Result<bool, StoreError> {
     // The hard-link trick: link(2) is atomic on NFS, and a lost reply is caught by the link
@@ -286,7 +331,7 @@ fn link_lock(uniq: &Path, path: &Path, content: &str) -> Result<bool, StoreError
 /// the file system has no flock (some NFS set-ups), it is skipped: the per-entry locks still
 /// hold.
 pub struct RunLock {
-    _file: File,
+    _file: Option<File>,
 }
 
 impl RunLock {
@@ -295,13 +340,22 @@ impl RunLock {
     pub fn acquire(root: &Path, no_wait: bool, exclusive: bool) -> Result<RunLock, StoreError> {
         use std::os::fd::AsRawFd;
         let path = root.join("lock");
-        let mut file = fs::OpenOptions::new()
+        let opened = fs::OpenOptions::new()
             .read(true)
             .write(true)
             .create(true)
             .truncate(false)
-            .open(&path)
-            .io_context(|| format!("opening lock file {}", path.display()))?;
+            .open(&path);
+        let mut file = match opened {
+            Ok(f) => f,
+            // A read-only cache: a shared lock through a read-only descriptor, so a gc by whoever
+            // may write it still waits; without a lock file nobody can gc it either.
+            Err(e) if !exclusive && refused(&e) => match File::open(&path) {
+                Ok(f) => f,
+                Err(_) => return Ok(RunLock { _file: None }),
+            },
+            opened => opened.io_context(|| format!("opening lock file {}", path.display()))?,
+        };
         let fd = file.as_raw_fd();
         let mode = if exclusive {
             libc::LOCK_EX
@@ -318,7 +372,7 @@ impl RunLock {
         if unsafe { libc::flock(fd, mode | libc::LOCK_NB) } != 0 {
             let err = std::io::Error::last_os_error();
             if unsupported(&err) {
-                return Ok(RunLock { _file: file });
+                return Ok(RunLock { _file: Some(file) });
             }
             let mut holder = String::new();
             let _ = file.read_to_string(&mut holder);
@@ -353,7 +407,7 @@ impl RunLock {
                 .and_then(|()| file.flush())
                 .io_context(|| format!("writing lock file {} (disk full?)", path.display()))?;
         }
-        Ok(RunLock { _file: file })
+        Ok(RunLock { _file: Some(file) })
     }
 }
 
@@ -380,5 +434,60 @@ mod tests {
         assert!(store.try_lock_key("live").unwrap().is_err());
         drop(held);
         assert!(store.try_lock_key("live").unwrap().is_ok());
+    }
+
+    #[test]
+    fn a_live_process_that_reuses_the_holders_pid_does_not_hold_the_lock() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        fs::create_dir_all(store.dir("locks")).unwrap();
+        let me = std::process::id();
+        let start = process_start(me).expect("/proc/self/stat");
+        let host = host_name();
+        let held = |content: String| {
+            fs::write(store.lock_path("k"), content).unwrap();
+            let got = store.try_lock_key("k").unwrap();
+            let held = got.is_err();
+            drop(got);
+            let _ = fs::remove_file(store.lock_path("k"));
+            held
+        };
+        assert!(
+            held(format!("{me} {host} n {start}\n")),
+            "the holder itself"
+        );
+        assert!(
+            !held(format!("{me} {host} n {}\n", start + 1)),
+            "a process that started at another time reuses the pid"
+        );
+        // Without a start time (an older lock): held while its heartbeat is fresh.
+        assert!(held(format!("{me} {host} n\n")));
+        fs::write(store.lock_path("k"), format!("{me} {host} n\n")).unwrap();
+        let old = SystemTime::now() - Duration::from_secs(3 * HEARTBEAT_S + 5);
+        File::options()
+            .write(true)
+            .open(store.lock_path("k"))
+            .unwrap()
+            .set_modified(old)
+            .unwrap();
+        assert!(store.try_lock_key("k").unwrap().is_ok(), "no heartbeat");
+    }
+
+    #[test]
+    fn breaking_a_dead_holders_lock_removes_its_temporary_entries() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let dead = child.id();
+        child.wait().unwrap();
+        let host = host_name();
+        fs::write(store.lock_path("k"), format!("{dead} {host} n 1\n")).unwrap();
+        let theirs = store.dir("tmp").join(format!("entry.k~{dead}~{host}~1"));
+        let ours = store.dir("tmp").join(owned_name("entry.j"));
+        fs::create_dir_all(&theirs).unwrap();
+        fs::create_dir_all(&ours).unwrap();
+        assert!(store.try_lock_key("k").unwrap().is_ok());
+        assert!(!theirs.exists(), "the dead holder's entry survives");
+        assert!(ours.exists(), "a live process's entry was removed");
     }
 }

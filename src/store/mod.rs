@@ -7,6 +7,7 @@
 //!   tmp/                            entries being written (renamed into objects/ when complete)
 //!   trash/                          corrupt entries moved aside for inspection
 //!   runs/<stage>.json               the last successful run of each stage instance (for status)
+//!   runs/pipelines/<id>.json        each pipeline file that ran here (what gc keeps reachable)
 //!   state/verified.json             (size, mtime, inode) of files already hashed, so a no-op
 //!                                   run does not re-hash gigabytes
 //!   locks/<key>.lock                who computes entry <key> right now (pid, host); see KeyLock
@@ -35,6 +36,7 @@ mod layout;
 mod locks;
 mod memo;
 mod pending;
+mod pipelines;
 mod records;
 
 pub use codec::{read_parquet, write_parquet, CodecError, StoredTable};
@@ -44,4 +46,5 @@ pub use files::{host_name, unix_now, write_atomic, STALE_LOCK_S};
 pub use layout::Store;
 pub use locks::{KeyLock, RunLock};
 pub use pending::{FileInfo, PendingEntry};
+pub use pipelines::KnownPipeline;
 pub use records::RunRecord;

@@ -37,6 +37,8 @@ impl Store {
         }
         rec.history = history;
         let dest = self.dir("runs").join(format!("{stage}.json"));
+        // Removed while the run worked (a clean-up by hand): lay it out again.
+        let _ = fs::create_dir_all(self.dir("runs"));
         let json = serde_json::to_vec_pretty(&rec).map_err(|source| StoreError::Json {
             what: dest.display().to_string(),
             source,

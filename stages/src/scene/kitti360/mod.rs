@@ -63,6 +63,19 @@ use read::{
     load_primitives, load_stereo_depth,
 };
 
+/// The file of parameter `name` (`pattern` under `root`); one that exists but is not a regular
+/// file (a directory, a FIFO) is refused naming the parameter.
+fn named_file(p: &Kitti360Params, name: &str, pattern: &str) -> Result<PathBuf> {
+    let path = p.file(pattern);
+    match crate::input_file::not_regular(&path) {
+        None => Ok(path),
+        Some(what) => Err(crate::StageError::Input(format!(
+            "parameter `{name}` ({pattern:?}): {}: is {what}, expected a regular file",
+            path.display()
+        ))),
+    }
+}
+
 /// Where `pipe export scene` writes the LiDAR scans (KITTI-360's own layout); `lidar` is off
 /// by default because the scans are a large, separate download.
 pub const LIDAR_PATTERN: &str = "data_3d_raw/{seq}/velodyne_points/data/{frame}.bin";
@@ -72,13 +85,20 @@ pub const STEREO_DEPTH_PATTERN: &str = "stereo_depth/{seq}/image_00/{frame}.png"
 /// Every file a run with these params reads (existing or not), in a fixed order: the runner
 /// hashes them into the stage's cache key. Reads the pose file to resolve the frame range.
 pub fn input_files(p: &Kitti360Params) -> Result<Vec<PathBuf>> {
-    let pose_path = p.file(&p.poses);
+    let pose_path = named_file(p, "poses", &p.poses)?;
     let posed = parse::poses(&pose_path, &parse::read_text(&pose_path)?)?;
     let frames = p.select_frames(&posed)?;
-    let mut out = vec![pose_path, p.file(&p.calibration), p.file(&p.bboxes)];
+    let mut out = vec![
+        pose_path,
+        named_file(p, "calibration", &p.calibration)?,
+        named_file(p, "bboxes", &p.bboxes)?,
+    ];
     let fisheyes = p.fisheye_cameras();
     if !fisheyes.is_empty() {
-        out.extend([p.file(&p.cam_to_pose), p.file(&p.imu_poses)]);
+        out.extend([
+            named_file(p, "cam_to_pose", &p.cam_to_pose)?,
+            named_file(p, "imu_poses", &p.imu_poses)?,
+        ]);
         out.extend(
             fisheyes
                 .iter()
@@ -86,7 +106,7 @@ pub fn input_files(p: &Kitti360Params) -> Result<Vec<PathBuf>> {
         );
     }
     if p.lidar.is_some() {
-        out.push(p.file(&p.lidar_calib));
+        out.push(named_file(p, "lidar_calib", &p.lidar_calib)?);
     }
     for (k, &f) in frames.iter().enumerate() {
         for &c in &p.cameras {

@@ -946,3 +946,18 @@ fn png_messages_say_what_is_wrong_and_palette_labels_read_as_ids() {
     );
     std::fs::remove_dir_all(root).unwrap();
 }
+
+#[test]
+fn a_directory_for_a_file_parameter_is_refused_naming_the_parameter() {
+    let (_root, mut p) = fixture("dir_param");
+    p.bboxes = ".".into();
+    let e = input_files(&p).unwrap_err().to_string();
+    assert!(
+        e.contains("parameter `bboxes` (\".\")") && e.contains("is a directory"),
+        "{e}"
+    );
+    let (_root, mut p) = fixture("dir_param_poses");
+    p.poses = "data_poses".into();
+    let e = input_files(&p).unwrap_err().to_string();
+    assert!(e.contains("parameter `poses`"), "{e}");
+}
