@@ -59,7 +59,9 @@ impl From<gc::GcError> for CliError {
             gc::GcError::Config(e) => CliError::Config(e),
             gc::GcError::Run(e) => CliError::Run(e),
             gc::GcError::Store(e) => CliError::Store(e),
-            e @ gc::GcError::ReadOnly { .. } => CliError::Other(e.into()),
+            e @ (gc::GcError::ReadOnly { .. } | gc::GcError::NotHere { .. }) => {
+                CliError::Other(e.into())
+            }
         }
     }
 }

@@ -169,7 +169,7 @@ fn gc_keeps_what_every_pipeline_that_ran_in_the_cache_reaches() {
     // entries stay.
     fs::rename(&other, ws.dir().join("moved.yaml")).unwrap();
     let out = gc(&ws, &[]);
-    assert!(out.contains("cannot be read here"), "{out}");
+    assert!(out.contains("cannot be read or resolved here"), "{out}");
     assert!(out.contains("keeping the 2 entries its last run"), "{out}");
     assert_eq!(ws.entries().len(), 5);
 
@@ -246,4 +246,29 @@ fn a_run_that_takes_over_a_killed_holders_lock_removes_its_temporary_entry() {
         "the killed holder's {left:?} survive in tmp/"
     );
     assert!(ws.stage_is_fresh("slow"));
+}
+
+#[test]
+fn gc_keeps_the_last_run_of_a_pipeline_whose_data_is_not_here() {
+    let ws = Workspace::new(PIPELINE);
+    ws.run_ok(&[]);
+    let data = ws.dir().join("data");
+    fs::create_dir_all(&data).unwrap();
+    fs::write(data.join("numbers.txt"), "1\n2\n").unwrap();
+    fs::write(
+        data.join("theirs.yaml"),
+        "cache: ../.pipe\nstages:\n  f:\n    uses: test_file\n    params: {path: data/numbers.txt}\n",
+    )
+    .unwrap();
+    ws.run_ok(&["-f", "data/theirs.yaml"]);
+    assert_eq!(ws.entries().len(), 4);
+    // Their data is on another machine now: their pipeline cannot be resolved here.
+    fs::remove_file(data.join("numbers.txt")).unwrap();
+    let out = gc(&ws, &[]);
+    assert!(
+        out.contains("theirs.yaml: cannot be read or resolved here"),
+        "{out}"
+    );
+    assert!(out.contains("keeping the 1 entries its last run"), "{out}");
+    assert_eq!(ws.entries().len(), 4);
 }

@@ -1,7 +1,8 @@
 //! `pipe gc`: removes the entries that no pipeline file known to the cache reaches. A cache is
 //! often shared (a matrix, several sequences, a colleague's runs), so what the `-f` pipeline
 //! does not reach may be another pipeline's work: every pipeline file that ran in the cache is
-//! resolved as it stands now, and one that cannot be read here keeps what its last run reached.
+//! resolved as it stands now, and one that cannot be read or resolved here (its data is on
+//! another machine) keeps what its last run reached.
 
 use std::{
     collections::BTreeSet,
@@ -24,6 +25,8 @@ pub enum GcError {
     Run(#[from] runner::RunError),
     #[error(transparent)]
     Store(#[from] StoreError),
+    #[error("stage `{stage}` reads {}, which is not here", .file.display())]
+    NotHere { stage: String, file: PathBuf },
     #[error("the cache at {} is read-only ({why}): nothing can be removed", .cache.display())]
     ReadOnly { cache: PathBuf, why: String },
 }
@@ -64,9 +67,13 @@ pub fn run(p: &Pipeline, opts: &GcOptions) -> Result<i32, GcError> {
                 continue;
             }
             let file = known.file.display();
-            match other_pipeline(&known.file, p) {
-                Ok(q) => {
-                    let keys = reached(&q, &store)?;
+            // Its data may not be here (a colleague's machine): then what its last run reached.
+            let resolved = other_pipeline(&known.file, p)
+                .map_err(GcError::from)
+                .and_then(|q| inputs_here(&q).map(|()| q))
+                .and_then(|q| reached(&q, &store));
+            match resolved {
+                Ok(keys) => {
                     println!(
                         "{file}: reaches {} entries (it ran in this cache)",
                         keys.len()
@@ -80,8 +87,8 @@ pub fn run(p: &Pipeline, opts: &GcOptions) -> Result<i32, GcError> {
                         .filter(|k| store.entry_dir(k).is_dir())
                         .collect();
                     println!(
-                        "{file}: cannot be read here ({e}); keeping the {} entries its last run \
-                         on {} reached ({})",
+                        "{file}: cannot be read or resolved here ({e}); keeping the {} entries \
+                         its last run on {} reached ({})",
                         kept.len(),
                         known.host,
                         ago(known.last_run)
@@ -140,6 +147,26 @@ pub fn run(p: &Pipeline, opts: &GcOptions) -> Result<i32, GcError> {
         }
     );
     Ok(0)
+}
+
+/// Whether every file outside the cache that `q`'s stages read is here: if one is missing, what
+/// `q` reaches cannot be known on this machine.
+fn inputs_here(q: &Pipeline) -> Result<(), GcError> {
+    for s in &q.stages {
+        let paths = s.kind.external_inputs(&s.params).map_err(|source| {
+            runner::RunError::ExternalInputs {
+                stage: s.name.clone(),
+                source,
+            }
+        })?;
+        if let Some(missing) = paths.iter().find(|f| !f.exists()) {
+            return Err(GcError::NotHere {
+                stage: s.name.clone(),
+                file: missing.clone(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Another pipeline file known to the cache, read as it stands, on this cache.

@@ -323,7 +323,10 @@ impl<'a> Scheduler<'a> {
                 return Ok(None);
             }
             Entry::Valid(_) => "forced".to_string(),
-            Entry::Corrupt(why) if self.opts.dry_run => format!("cache entry corrupt: {why}"),
+            // (A read-only cache cannot move it aside: the run stops, saying both.)
+            Entry::Corrupt(why) if self.opts.dry_run || self.store.read_only().is_some() => {
+                format!("cache entry corrupt: {why}")
+            }
             Entry::Corrupt(why) => {
                 let dest = self.store.quarantine(key)?;
                 let msg = format!("cache entry corrupt: {why} (moved to {})", dest.display());
