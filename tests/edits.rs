@@ -44,8 +44,29 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
     let ws = Workspace::new(PIPELINE);
     ws.run_ok(&[]);
     let parent = ws.stage_key("rays");
+    let scene_parent = ws.stage_key("scene");
     // Once the edited scene is read, status knows what rays will update from.
     ws.run_ok(&["--set", EDIT, "--until", "scene"]);
+    // The scene itself: only the annotation is written again, the rest is the parent's files.
+    let (outcome, why) = last(&ws, "scene");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert!(
+        why.starts_with(&format!(
+            "updated from {}: the annotation edited",
+            &scene_parent[..8]
+        )),
+        "{why}"
+    );
+    let scene_updated = ws.stage_key("scene");
+    let (before, after) = (manifest(&ws, &scene_parent), manifest(&ws, &scene_updated));
+    for table in ["images", "gt_semantic", "pseudo_labels", "cameras"] {
+        let file = format!("{table}.parquet");
+        assert_eq!(before["files"][&file], after["files"][&file], "{table}");
+    }
+    assert_ne!(
+        before["files"]["primitives.parquet"],
+        after["files"]["primitives.parquet"]
+    );
     let status = ws.status(&["--set", EDIT]);
     let line = ws.status_line(&status, "rays");
     assert!(
@@ -105,6 +126,12 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
         "the update's bytes differ from the cold run's"
     );
     assert_eq!(manifest(&ws, &cold)["output_digest"], m["output_digest"]);
+    // The scene from scratch: the updated scene's bytes.
+    assert_eq!(last(&ws, "scene").0, Outcome::Ran);
+    assert_eq!(
+        manifest(&ws, &ws.stage_key("scene"))["output_digest"],
+        after["output_digest"]
+    );
 
     // The same parent and the same edit in another cache: the same key and bytes.
     let other = Workspace::new(PIPELINE);

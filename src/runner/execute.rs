@@ -6,6 +6,7 @@
 
 use std::{
     collections::{BTreeMap, BTreeSet, HashSet},
+    path::PathBuf,
     sync::{Arc, Mutex},
     time::Instant,
 };
@@ -148,11 +149,15 @@ impl Job {
             changed: &parent.changed,
             lineage: &parent.lineage,
         });
+        let parent_entry = self
+            .parent
+            .as_ref()
+            .map(|par| (self.store.entry_dir(&par.manifest.key), &*par.manifest));
         let result = execute(
             &self.p,
             self.i,
             &ins,
-            previous.as_ref(),
+            previous.as_ref().zip(parent_entry),
             &pending,
             &self.bar,
         );
@@ -324,11 +329,13 @@ pub fn gather_tables(
 
 /// Runs a stage body (or its update of `previous`) and checks its outputs against the kind's
 /// contract and schema files; with what an update computed again.
+/// Runs stage `i`'s body, or its update of `previous` (with the parent entry's directory and
+/// manifest: the tables the update leaves out are linked from there).
 fn execute(
     p: &Pipeline,
     i: usize,
     inputs: &BTreeMap<String, TableSet>,
-    previous: Option<&Previous>,
+    previous: Option<(&Previous, (PathBuf, &Manifest))>,
     pending: &PendingEntry,
     bar: &StageBar,
 ) -> Result<(Tables, Option<String>), StageFailure> {
@@ -337,8 +344,8 @@ fn execute(
     let slots = inputs.iter().map(|(k, v)| (k.clone(), v)).collect();
     let adapter = bar.adapter();
     let inputs = Inputs::new(slots).with_sinks(pending);
-    let body = match previous {
-        Some(prev) => s
+    let body = match &previous {
+        Some((prev, _)) => s
             .kind
             .update(&s.params, &inputs, prev, &adapter)
             .map(|u| (u.tables, Some(u.redone))),
@@ -349,9 +356,23 @@ fn execute(
         kind: kind.clone(),
         source,
     })?;
+    let declared: BTreeSet<String> = s.kind.outputs().iter().map(|t| t.to_string()).collect();
+    if let Some((_, (dir, parent))) = &previous {
+        // What the update left out is the parent's, byte for byte.
+        let streamed = pending.streamed();
+        for t in &declared {
+            let file = format!("{t}.parquet");
+            if let (false, false, Some(info)) = (
+                tables.contains_key(t),
+                streamed.contains(t),
+                parent.files.get(&file),
+            ) {
+                pending.keep(t, &dir.join(&file), info.clone())?;
+            }
+        }
+    }
     let mut written: BTreeSet<String> = tables.keys().cloned().collect();
     written.extend(pending.streamed());
-    let declared: BTreeSet<String> = s.kind.outputs().iter().map(|t| t.to_string()).collect();
     if written != declared {
         return Err(StageFailure::Outputs {
             stage,

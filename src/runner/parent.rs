@@ -1,7 +1,8 @@
 //! Updating instead of computing from scratch. A stage whose kind can update
-//! ([`stages::Stage::updates`]) and whose inputs changed starts from its *parent*: the last run of
-//! the same stage instance (its run record) with the same kind, code version and params, whose
-//! entry and input entries are still in the cache. The updated entry's key is the stage's key
+//! ([`stages::Stage::updates`]) and whose inputs (or editable params,
+//! [`stages::Stage::editable_params`]) changed starts from its *parent*: the last run of the same
+//! stage instance (its run record) with the same kind, code version and params but for those,
+//! whose entry and input entries are still in the cache. The updated entry's key is the stage's key
 //! with the parent's key added as input `@parent`: the same parent and the same inputs
 //! give the same entry, and it never passes for a run from scratch. Where there is no usable
 //! parent, the stage computes from scratch and the run log says why.
@@ -26,14 +27,34 @@ pub struct Parent {
     pub changed: Changed,
     /// How the current input entries relate to the parent's.
     pub lineage: Lineage,
+    /// The editable params ([`stages::Stage::editable_params`]) the parent ran with other
+    /// values of.
+    pub edited: Vec<String>,
 }
 
 impl Parent {
-    /// Whether an input entry of `inputs` is another than the parent's.
-    pub fn inputs_differ(&self, inputs: &BTreeMap<String, InputInfo>) -> bool {
-        self.inputs
-            .iter()
-            .any(|(slot, m)| inputs.get(slot).and_then(|i| i.key.as_ref()) != Some(&m.key))
+    /// Whether an input entry of `inputs` is another than the parent's, or the parent ran with
+    /// other editable params.
+    pub fn differs(&self, inputs: &BTreeMap<String, InputInfo>) -> bool {
+        !self.edited.is_empty()
+            || self
+                .inputs
+                .iter()
+                .any(|(slot, m)| inputs.get(slot).and_then(|i| i.key.as_ref()) != Some(&m.key))
+    }
+
+    /// ``` `scene`.primitives changed ```, ``` param `edits` changed ```: for messages.
+    pub fn what_changed(&self) -> String {
+        let params = self.edited.iter().map(|n| format!("param `{n}`"));
+        match (self.changed.is_empty(), self.edited.is_empty()) {
+            (_, true) => describe(&self.changed),
+            (true, false) => format!("{} changed", params.collect::<Vec<_>>().join(", ")),
+            (false, false) => format!(
+                "{}, {} changed",
+                describe(&self.changed).trim_end_matches(" changed"),
+                params.collect::<Vec<_>>().join(", ")
+            ),
+        }
     }
 
     /// The parent's key, shortened for messages.
@@ -80,11 +101,13 @@ pub fn find_parent(
         return Err(None);
     }
     let rec = store.run_record(&s.name).ok_or(None)?;
-    // Params that only say how to update may differ from the parent's.
+    // Params that only say how to update, and those an update takes up (edits), may differ
+    // from the parent's.
     let recipe = |v| fingerprint::recipe(s.kind.as_ref(), v);
+    let fixed = |v| without(recipe(v), s.kind.editable_params());
     if rec.kind != s.kind.kind()
         || rec.version != s.kind.version()
-        || recipe(&rec.params) != recipe(&s.params)
+        || fixed(&rec.params) != fixed(&s.params)
     {
         return Err(None);
     }
@@ -100,9 +123,10 @@ pub fn find_parent(
     // The last run was an update from these very inputs: its entry is the current one (the
     // same parent and inputs give the same key), not a parent.
     if let Some(grand) = rec.inputs.get(PARENT_SLOT) {
-        let same = slots(inputs)
-            .iter()
-            .all(|k| rec.inputs[k].digest == inputs[k].digest);
+        let same = recipe(&rec.params) == recipe(&s.params)
+            && slots(inputs)
+                .iter()
+                .all(|k| rec.inputs[k].digest == inputs[k].digest);
         if same {
             return Ok(Found::Current(grand.digest.clone()));
         }
@@ -152,12 +176,30 @@ pub fn find_parent(
     s.kind
         .can_update(&s.params, &changed, &lineage)
         .map_err(Some)?;
+    let edited = s
+        .kind
+        .editable_params()
+        .iter()
+        .filter(|n| rec.params.get(**n) != s.params.get(**n))
+        .map(|n| n.to_string())
+        .collect();
     Ok(Found::Parent(Parent {
         manifest,
         inputs: parent_inputs,
         changed,
         lineage,
+        edited,
     }))
+}
+
+/// `params` without the top-level params `names`.
+fn without(mut params: serde_json::Value, names: &[&str]) -> serde_json::Value {
+    if let serde_json::Value::Object(m) = &mut params {
+        for name in names {
+            m.remove(*name);
+        }
+    }
+    params
 }
 
 /// Whether entry `m` was updated, directly or through a few updates in between, from the entry

@@ -10,7 +10,7 @@ use serde_json::Value;
 use super::{
     error::RunError,
     options::{RunOptions, Scenes},
-    parent::{describe, find_parent, updated_key, Found},
+    parent::{find_parent, updated_key, Found},
 };
 use crate::{
     config::{shorten, show_json, Pipeline},
@@ -294,7 +294,7 @@ pub fn resolve(
                                         Found::Parent(par) => format!(
                                             "{why}; will update entry {} ({})",
                                             par.short(),
-                                            describe(&par.changed)
+                                            par.what_changed()
                                         ),
                                         Found::Current(_) => why.clone(),
                                     }),

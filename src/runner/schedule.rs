@@ -15,7 +15,7 @@ use super::{
     error::{RunError, StageFailure},
     execute::{Finished, Job, Loaded, SceneManifests},
     options::RunOptions,
-    parent::{describe, find_parent, short_key, updated_key, Found, Parent},
+    parent::{find_parent, short_key, updated_key, Found, Parent},
     plan::{explain, key_of},
     progress::Bars,
     report::{Outcome, RunReport, StageReport},
@@ -210,7 +210,7 @@ impl<'a> Scheduler<'a> {
         // Measuring updates (`RunOptions::prefer_update`): the update, though the entry from
         // scratch is cached.
         let prefer = self.opts.prefer_update
-            && matches!(self.parent_for(i, &inputs), Ok(Found::Parent(par)) if par.inputs_differ(&inputs))
+            && matches!(self.parent_for(i, &inputs), Ok(Found::Parent(par)) if par.differs(&inputs))
             && matches!(self.store.check(&key, false), Entry::Valid(_));
         let reason = if prefer {
             "its entry from scratch is cached, but updates are measured".to_string()
@@ -226,7 +226,7 @@ impl<'a> Scheduler<'a> {
                 let why = format!(
                     "{reason}; updating entry {} ({})",
                     parent.short(),
-                    describe(&parent.changed)
+                    parent.what_changed()
                 );
                 inputs = uinputs;
                 let Some(why) = self.why_run(i, &ukey, &inputs, ov0)?.map(|_| why) else {

@@ -59,6 +59,24 @@ impl PendingEntry {
         self.written.lock().unwrap().keys().cloned().collect()
     }
 
+    /// Takes the table `table` unchanged from another entry's file `from` (whose size and
+    /// blake3 are `info`): a hard link where the file system has them, else a copy. Entries are
+    /// never written after they are published, so sharing the file is safe.
+    pub fn keep(&self, table: &str, from: &Path, info: FileInfo) -> Result<(), StoreError> {
+        let mut written = self.written.lock().unwrap();
+        if written.contains_key(table) {
+            return Err(StoreError::Corrupt(format!(
+                "output table `{table}` was written and kept from the previous run"
+            )));
+        }
+        let to = self.dir.join(format!("{table}.parquet"));
+        fs::hard_link(from, &to)
+            .or_else(|_| fs::copy(from, &to).map(|_| ()))
+            .io_context(|| format!("taking {} into {}", from.display(), to.display()))?;
+        written.insert(table.to_string(), Some(info));
+        Ok(())
+    }
+
     /// The streamed tables' files; an error if one was opened and never finished. From here on
     /// the caller owns the directory (it is not removed on drop).
     pub(super) fn finish(mut self) -> Result<BTreeMap<String, FileInfo>, StoreError> {

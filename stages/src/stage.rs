@@ -137,7 +137,9 @@ impl MemoryInputs {
 pub type Changed = BTreeMap<String, BTreeSet<String>>;
 
 /// The previous run of a stage instance, offered by the runner for [`Stage::update`]: the same
-/// kind, code version and params, computed from inputs that differ only in `changed`.
+/// kind, code version and params (but for the kind's [`Stage::editable_params`]), computed from
+/// inputs that differ only in `changed`. An output table the update leaves out of its tables
+/// (and does not stream) is the previous run's, unchanged: the runner links its file.
 pub struct Previous<'a> {
     /// Its output tables.
     pub outputs: &'a TableSet,
@@ -245,6 +247,9 @@ pub trait Stage: Send + Sync {
     /// writes ([`TypedStage::UPDATE_ONLY`]): no part of a run from scratch's key, and a parent
     /// may have run with other values.
     fn update_only_params(&self) -> &'static [&'static str];
+    /// Top-level params a parent may differ in, which its update takes up
+    /// ([`TypedStage::EDITABLE`]): part of every key, unlike update-only params.
+    fn editable_params(&self) -> &'static [&'static str];
     /// Whether [`Stage::update`] can start from a previous run whose inputs differ from the
     /// current ones in `changed` and relate to them as `lineage` says; if not, why (the runner
     /// then computes from scratch).
@@ -288,6 +293,9 @@ pub trait TypedStage: Send + Sync {
     /// kind, leaves every cached entry current), part of an update's key, and a parent may have
     /// run with other values of them ([`Stage::update_only_params`]).
     const UPDATE_ONLY: &'static [&'static str] = &[];
+    /// Top-level params whose change [`TypedStage::update`] takes up from a parent that ran with
+    /// other values (a source stage's edits of the annotation): a parent may differ in them.
+    const EDITABLE: &'static [&'static str] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -402,6 +410,9 @@ impl<T: TypedStage> Stage for T {
     }
     fn update_only_params(&self) -> &'static [&'static str] {
         T::UPDATE_ONLY
+    }
+    fn editable_params(&self) -> &'static [&'static str] {
+        T::EDITABLE
     }
     fn can_update(
         &self,

@@ -183,7 +183,7 @@ fn same_intrinsics(a: &Camera, b: &Camera) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::synthetic::{generate, to_tables, SceneParams};
+    use crate::scene::synthetic::{generate, in_memory::to_tables, SceneParams};
 
     fn run(params: serde_json::Value, scene: &Tables) -> Result<Tables> {
         let s = MotionStereo;

@@ -5,9 +5,13 @@ use std::path::{Path, PathBuf};
 
 use crate::scene::{
     kitti360_export, preview,
-    synthetic::{write_tables, SceneParams},
+    synthetic::{annotation_tables, write_tables, SceneParams},
 };
-use crate::stage::{InputSlot, Inputs, Progress, Result, TableSet, Tables, TypedStage};
+use crate::stage::{
+    InputSlot, Inputs, Previous, Progress, Result, TableSet, Tables, TypedStage, Updated,
+};
+use crate::{tables, StageError};
+use arrow::datatypes::UInt8Type;
 
 /// The synthetic street scene kind.
 pub struct SyntheticScene;
@@ -38,8 +42,28 @@ impl TypedStage for SyntheticScene {
         "gt_depth",
     ];
 
+    // An edit of the annotation (`edits`) rewrites the primitives and keeps the street's
+    // images, labels and depth.
+    const UPDATES: bool = true;
+    const EDITABLE: &'static [&'static str] = &["edits"];
+
     fn validate(p: &SceneParams) -> Result<()> {
         p.validate()
+    }
+
+    fn update(
+        &self,
+        p: &SceneParams,
+        _: &Inputs,
+        previous: &Previous,
+        _: &dyn Progress,
+    ) -> Result<Updated> {
+        Ok(Updated {
+            tables: edited_tables(p, previous.outputs)?,
+            redone: "the annotation edited: primitives and scene_info written again, the \
+                     images, labels and depth kept"
+                .into(),
+        })
     }
 
     fn run(&self, p: &SceneParams, inputs: &Inputs, progress: &dyn Progress) -> Result<Tables> {
@@ -52,4 +76,25 @@ impl TypedStage for SyntheticScene {
         files.extend(preview::write(&t, &dir.join("previews"))?);
         Ok(files)
     }
+}
+
+/// The tables an edit of the annotation changes (`primitives`, `scene_info`), from `previous`,
+/// the same street generated with other edits: the images, labels and depth stay the same (the
+/// edits change the annotation only), so the classes of its GT images carry over.
+fn edited_tables(p: &SceneParams, previous: &TableSet) -> Result<Tables> {
+    let layout = crate::scene::layout::build(&p.layout_params()?);
+    let gt = previous
+        .get("gt_semantic")
+        .ok_or_else(|| StageError::Failed("the previous scene has no gt_semantic".into()))?;
+    let mut seen = [false; 256];
+    for i in 0..gt.num_rows() {
+        let row = gt.rows(i..i + 1, Some(&["labels"]))?;
+        let labels = tables::get_list::<UInt8Type>(&row, "gt_semantic", "labels")?;
+        for &l in labels.row(0) {
+            seen[l as usize] = true;
+        }
+    }
+    let mut t = Tables::new();
+    annotation_tables(p, &layout, seen, &mut t)?;
+    Ok(t)
 }

@@ -323,7 +323,7 @@ fn batches_are_deterministic_for_a_seed() {
 
 /// A 2-frame synthetic street at 1/20 scale.
 fn small_street() -> crate::Tables {
-    use crate::scene::synthetic::{generate, to_tables, SceneParams};
+    use crate::scene::synthetic::{generate, in_memory::to_tables, SceneParams};
     let sp = SceneParams {
         frames: 2,
         scale: 0.05,

@@ -421,7 +421,7 @@ mod tests {
     #[test]
     fn sgm_depth_on_the_synthetic_scene_is_close_to_gt() {
         let sp = crate::scene::synthetic::SceneParams::default();
-        let t = crate::scene::synthetic::to_tables(
+        let t = crate::scene::synthetic::in_memory::to_tables(
             &sp,
             crate::scene::synthetic::generate(&sp, &crate::NoProgress).unwrap(),
         )

@@ -209,7 +209,7 @@ impl SceneParams {
         (frame - self.first_frame) % self.eval_every == 0
     }
 
-    fn layout_params(&self) -> Result<LayoutParams> {
+    pub(crate) fn layout_params(&self) -> Result<LayoutParams> {
         Ok(LayoutParams {
             seed: self.seed,
             street_length: self.street_length_m,
@@ -658,29 +658,8 @@ impl ImageTables {
         layout: &Layout,
         t: &mut Tables,
     ) -> Result<()> {
-        let prims = super::edits::apply(&layout.bounds, &p.edits)?;
-        // The classes present: in any GT image or any primitive, plus sky.
-        let mut seen = self.seen;
-        seen[SKY as usize] = true;
-        for b in &prims {
-            seen[b.label as usize] = true;
-        }
-        let classes: Vec<u8> = (0..=255u8).filter(|&c| seen[c as usize]).collect();
-        t.insert(
-            "scene_info".into(),
-            tables::build(
-                "scene_info",
-                vec![
-                    tables::strings([p.name.as_str()]),
-                    tables::strings([p.sequence.as_str()]),
-                    tables::fixed_list::<Float64Type>(3, p.origin.to_vec()),
-                    tables::list::<UInt8Type>([classes]),
-                    tables::prim::<Float64Type>([p.baseline_m]),
-                ],
-            )?,
-        );
+        annotation_tables(p, layout, self.seen, t)?;
         t.insert("cameras".into(), cameras_to_table(cameras)?);
-        t.insert("primitives".into(), primitives_to_table(&prims)?);
         for w in [
             self.images,
             self.gt_semantic,
@@ -694,6 +673,37 @@ impl ImageTables {
         }
         Ok(())
     }
+}
+
+/// `primitives` (the layout's boxes with `p.edits` applied) and `scene_info`, whose classes are
+/// those `seen` in any GT image, of any primitive, and sky.
+pub fn annotation_tables(
+    p: &SceneParams,
+    layout: &Layout,
+    mut seen: [bool; 256],
+    t: &mut Tables,
+) -> Result<()> {
+    let prims = super::edits::apply(&layout.bounds, &p.edits)?;
+    seen[SKY as usize] = true;
+    for b in &prims {
+        seen[b.label as usize] = true;
+    }
+    let classes: Vec<u8> = (0..=255u8).filter(|&c| seen[c as usize]).collect();
+    t.insert(
+        "scene_info".into(),
+        tables::build(
+            "scene_info",
+            vec![
+                tables::strings([p.name.as_str()]),
+                tables::strings([p.sequence.as_str()]),
+                tables::fixed_list::<Float64Type>(3, p.origin.to_vec()),
+                tables::list::<UInt8Type>([classes]),
+                tables::prim::<Float64Type>([p.baseline_m]),
+            ],
+        )?,
+    );
+    t.insert("primitives".into(), primitives_to_table(&prims)?);
+    Ok(())
 }
 
 /// One row of a per-image table: `row`'s (frame, camera, width, height) and a value column.
@@ -759,42 +769,6 @@ pub fn write_tables(p: &SceneParams, inputs: &Inputs, progress: &dyn Progress) -
     Ok(t)
 }
 
-/// The tables of a scene generated in memory (tests); equal to what [`write_tables`] writes.
-pub fn to_tables(p: &SceneParams, g: Generated) -> Result<Tables> {
-    let no_slots = Inputs::new(Default::default());
-    let mut out = ImageTables::open(&no_slots)?;
-    let Generated {
-        layout,
-        cameras,
-        images,
-        labelled,
-        pseudo,
-        stereo,
-        lidar,
-    } = g;
-    let (mut pseudo, mut stereo, mut lidar) =
-        (pseudo.into_iter(), stereo.into_iter(), lidar.into_iter());
-    for (i, (row, render)) in cameras.iter().zip(images).enumerate() {
-        let m = RowMaps {
-            render,
-            pseudo: if labelled.contains(&i) {
-                pseudo.next()
-            } else {
-                None
-            },
-            stereo: if has_stereo(row) { stereo.next() } else { None },
-            lidar: if has_lidar(row) {
-                lidar.next().map(|l| l.1)
-            } else {
-                None
-            },
-        };
-        out.push(row, m)?;
-    }
-    let mut t = Tables::new();
-    out.finish(p, &cameras, &layout, &mut t)?;
-    Ok(t)
-}
-
+pub mod in_memory;
 #[cfg(test)]
 mod tests;

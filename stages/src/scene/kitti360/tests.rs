@@ -513,7 +513,7 @@ fn lidar_scans_project_into_the_left_camera() {
 /// Exports the default synthetic scene in the KITTI-360 layout and loads it back.
 fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
     let sp = SceneParams::default();
-    let synth = crate::scene::synthetic::to_tables(
+    let synth = crate::scene::synthetic::in_memory::to_tables(
         &sp,
         crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
     )
@@ -815,7 +815,7 @@ fn a_pose_far_from_the_rest_names_the_frame_wherever_it_is() {
 #[test]
 fn the_exported_bboxes_keep_every_object_apart_for_the_devkit() {
     let sp = SceneParams::default();
-    let synth = crate::scene::synthetic::to_tables(
+    let synth = crate::scene::synthetic::in_memory::to_tables(
         &sp,
         crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
     )

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use glam::DVec3;
 
+use super::in_memory::to_tables;
 use super::*;
 use crate::geometry::Primitive;
 use crate::kinds::synthetic_scene::SyntheticScene;

@@ -214,7 +214,7 @@ fn the_exported_fisheye_scene_loads_back_into_equal_tables() {
         ..Default::default()
     };
     let g = crate::scene::synthetic::generate(&sp, &NoProgress).unwrap();
-    let synth = crate::scene::synthetic::to_tables(&sp, g).unwrap();
+    let synth = crate::scene::synthetic::in_memory::to_tables(&sp, g).unwrap();
     let root = temp("roundtrip-fisheye");
     kitti360_export::write(&synth, &root).unwrap();
     for f in [
@@ -281,7 +281,7 @@ fn an_independent_mei_projection_of_the_exported_calibration_agrees() {
         ..Default::default()
     };
     let g = crate::scene::synthetic::generate(&sp, &NoProgress).unwrap();
-    let synth = crate::scene::synthetic::to_tables(&sp, g).unwrap();
+    let synth = crate::scene::synthetic::in_memory::to_tables(&sp, g).unwrap();
     let root = temp("independent-mei");
     kitti360_export::write(&synth, &root).unwrap();
     let text = std::fs::read_to_string(root.join("calibration/image_02.yaml")).unwrap();
