@@ -200,33 +200,6 @@ pub fn get_fixed_list<'a, T: ArrowPrimitiveType>(
     Ok((&values.values()[start..start + list.len() * n], n))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use arrow::datatypes::{Float64Type, UInt32Type};
-
-    #[test]
-    fn list_columns_round_trip() {
-        let a = list::<UInt32Type>(vec![vec![1, 2], vec![], vec![3]]);
-        let b = fixed_list::<Float64Type>(2, vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
-        let schema = Arc::new(arrow::datatypes::Schema::new(vec![
-            arrow::datatypes::Field::new("a", a.data_type().clone(), false),
-            arrow::datatypes::Field::new("b", b.data_type().clone(), false),
-        ]));
-        let batch = RecordBatch::try_new(schema, vec![a, b]).unwrap();
-        let l = get_list::<UInt32Type>(&batch, "t", "a").unwrap();
-        assert_eq!(l.row(0), &[1, 2]);
-        assert!(l.row(1).is_empty());
-        assert_eq!(l.row(2), &[3]);
-        let sliced = batch.slice(1, 2);
-        let (flat, n) = get_fixed_list::<Float64Type>(&sliced, "t", "b").unwrap();
-        assert_eq!((flat, n), (&[3.0, 4.0, 5.0, 6.0][..], 2));
-        let err = get_prim::<UInt32Type>(&batch, "t", "b").unwrap_err();
-        assert!(err.to_string().contains("column `b`"), "{err}");
-        assert!(get_prim::<UInt32Type>(&batch, "t", "zzz").is_err());
-    }
-}
-
 /// Writes `batch` as CSV (a header of column names, nulls empty, text quoted where it holds a
 /// comma, quote or line break) to `path`, creating its directory.
 pub fn write_csv(batch: &RecordBatch, path: &std::path::Path) -> Result<()> {
@@ -272,4 +245,31 @@ pub fn write_csv(batch: &RecordBatch, path: &std::path::Path) -> Result<()> {
         std::fs::create_dir_all(dir).map_err(|e| fail(e.to_string()))?;
     }
     std::fs::write(path, out).map_err(|e| fail(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::datatypes::{Float64Type, UInt32Type};
+
+    #[test]
+    fn list_columns_round_trip() {
+        let a = list::<UInt32Type>(vec![vec![1, 2], vec![], vec![3]]);
+        let b = fixed_list::<Float64Type>(2, vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        let schema = Arc::new(arrow::datatypes::Schema::new(vec![
+            arrow::datatypes::Field::new("a", a.data_type().clone(), false),
+            arrow::datatypes::Field::new("b", b.data_type().clone(), false),
+        ]));
+        let batch = RecordBatch::try_new(schema, vec![a, b]).unwrap();
+        let l = get_list::<UInt32Type>(&batch, "t", "a").unwrap();
+        assert_eq!(l.row(0), &[1, 2]);
+        assert!(l.row(1).is_empty());
+        assert_eq!(l.row(2), &[3]);
+        let sliced = batch.slice(1, 2);
+        let (flat, n) = get_fixed_list::<Float64Type>(&sliced, "t", "b").unwrap();
+        assert_eq!((flat, n), (&[3.0, 4.0, 5.0, 6.0][..], 2));
+        let err = get_prim::<UInt32Type>(&batch, "t", "b").unwrap_err();
+        assert!(err.to_string().contains("column `b`"), "{err}");
+        assert!(get_prim::<UInt32Type>(&batch, "t", "zzz").is_err());
+    }
 }

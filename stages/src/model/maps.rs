@@ -626,8 +626,8 @@ mod tests {
             };
             let updated = render(new_field.as_ref(), &new_rays, Some(again));
             let (mut inside, mut outside, mut differ_outside) = (0, 0, 0);
-            for p in 0..pixels.len() {
-                if pixels[p] {
+            for (p, &in_cell) in pixels.iter().enumerate() {
+                if in_cell {
                     inside += 1;
                     assert!(same_at(&updated, &whole, p), "stride {stride}: pixel {p}");
                     assert_eq!(updated.rgb[p * 3..p * 3 + 3], whole.rgb[p * 3..p * 3 + 3]);

@@ -205,53 +205,6 @@ where
         .map_err(|e| e.to_string())
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use arrow::datatypes::Float32Type;
-
-    fn log(columns: &[(&str, Vec<f32>)]) -> RecordBatch {
-        let n = columns[0].1.len();
-        let mut cols: Vec<(&str, arrow::array::ArrayRef)> = vec![(
-            "iteration",
-            tables::prim::<UInt32Type>((0..n as u32).collect::<Vec<_>>()),
-        )];
-        for (name, v) in columns {
-            cols.push((name, tables::prim::<Float32Type>(v.clone())));
-        }
-        RecordBatch::try_from_iter(cols).unwrap()
-    }
-
-    #[test]
-    fn symlog_round_trips_and_is_odd() {
-        let a = Axis::Symlog(0.01);
-        for v in [-3.0, -0.004, 0.0, 0.005, 0.3, 42.0] {
-            assert!((a.from(a.to(v)) - v).abs() < 1e-9 * v.abs().max(1.0), "{v}");
-            assert_eq!(a.to(-v), -a.to(v));
-        }
-        assert!(a.to(1.0) > a.to(0.1) && a.to(0.1) > a.to(0.0));
-    }
-
-    #[test]
-    fn a_term_at_zero_or_below_keeps_its_curve() {
-        let svg = training_svg(&log(&[
-            ("loss_total", vec![-0.5, -0.4, -0.45, -0.6]),
-            ("loss_rgb", vec![0.2, 0.1, 0.05, 0.04]),
-            ("loss_depth", vec![0.0, 0.0, 0.0, 0.0]),
-        ]))
-        .unwrap()
-        .unwrap();
-        assert!(svg.contains("symlog"), "a symlog axis");
-        for name in ["loss_total", "loss_rgb", "loss_depth"] {
-            assert!(svg.contains(name), "{name} is in the legend");
-        }
-        let positive = training_svg(&log(&[("loss_rgb", vec![0.2, 0.1, 0.05, 0.04])]))
-            .unwrap()
-            .unwrap();
-        assert!(positive.contains("log scale"));
-    }
-}
-
 /// One figure of a (frame, camera, score, coverage) row.
 type FrameValue = fn(&(u32, u8, f64, f64)) -> f64;
 
@@ -320,4 +273,51 @@ pub fn review_svg(rows: &[(u32, u8, f64, f64)]) -> Result<Option<String>> {
         root.present().map_err(|e| err(e.to_string()))?;
     }
     Ok(Some(svg))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::datatypes::Float32Type;
+
+    fn log(columns: &[(&str, Vec<f32>)]) -> RecordBatch {
+        let n = columns[0].1.len();
+        let mut cols: Vec<(&str, arrow::array::ArrayRef)> = vec![(
+            "iteration",
+            tables::prim::<UInt32Type>((0..n as u32).collect::<Vec<_>>()),
+        )];
+        for (name, v) in columns {
+            cols.push((name, tables::prim::<Float32Type>(v.clone())));
+        }
+        RecordBatch::try_from_iter(cols).unwrap()
+    }
+
+    #[test]
+    fn symlog_round_trips_and_is_odd() {
+        let a = Axis::Symlog(0.01);
+        for v in [-3.0, -0.004, 0.0, 0.005, 0.3, 42.0] {
+            assert!((a.from(a.to(v)) - v).abs() < 1e-9 * v.abs().max(1.0), "{v}");
+            assert_eq!(a.to(-v), -a.to(v));
+        }
+        assert!(a.to(1.0) > a.to(0.1) && a.to(0.1) > a.to(0.0));
+    }
+
+    #[test]
+    fn a_term_at_zero_or_below_keeps_its_curve() {
+        let svg = training_svg(&log(&[
+            ("loss_total", vec![-0.5, -0.4, -0.45, -0.6]),
+            ("loss_rgb", vec![0.2, 0.1, 0.05, 0.04]),
+            ("loss_depth", vec![0.0, 0.0, 0.0, 0.0]),
+        ]))
+        .unwrap()
+        .unwrap();
+        assert!(svg.contains("symlog"), "a symlog axis");
+        for name in ["loss_total", "loss_rgb", "loss_depth"] {
+            assert!(svg.contains(name), "{name} is in the legend");
+        }
+        let positive = training_svg(&log(&[("loss_rgb", vec![0.2, 0.1, 0.05, 0.04])]))
+            .unwrap()
+            .unwrap();
+        assert!(positive.contains("log scale"));
+    }
 }

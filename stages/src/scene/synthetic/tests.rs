@@ -800,8 +800,8 @@ fn supersampled_colour_is_the_mean_over_a_finer_grid_and_labels_stay_the_centre_
                     assert!((cam.ray(u, v).unwrap().dir - ray.dir).length() < 1e-12);
                     let s = tracer::trace(&layout, &bvh, &ray);
                     classes.insert(s.label);
-                    for k in 0..3 {
-                        want[k] += s.radiance[k] / 9.0;
+                    for (w, r) in want.iter_mut().zip(s.radiance) {
+                        *w += r / 9.0;
                     }
                 }
             }
