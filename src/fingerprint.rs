@@ -20,13 +20,17 @@ pub const PARENT_SLOT: &str = "@parent";
 /// `params` without the kind's update-only params ([`stages::Stage::update_only_params`]): what
 /// a run from scratch is keyed by, and what a parent's params must equal.
 pub fn recipe(kind: &dyn stages::Stage, params: &serde_json::Value) -> serde_json::Value {
-    let mut v = params.clone();
-    if let serde_json::Value::Object(m) = &mut v {
-        for name in kind.update_only_params() {
+    without(params.clone(), kind.update_only_params())
+}
+
+/// `params` without the top-level params `names`.
+pub fn without(mut params: serde_json::Value, names: &[&str]) -> serde_json::Value {
+    if let serde_json::Value::Object(m) = &mut params {
+        for name in names {
             m.remove(*name);
         }
     }
-    v
+    params
 }
 
 /// Hex blake3 of the canonical description of a stage run.

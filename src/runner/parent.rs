@@ -104,7 +104,7 @@ pub fn find_parent(
     // Params that only say how to update, and those an update takes up (edits), may differ
     // from the parent's.
     let recipe = |v| fingerprint::recipe(s.kind.as_ref(), v);
-    let fixed = |v| without(recipe(v), s.kind.editable_params());
+    let fixed = |v| fingerprint::without(recipe(v), s.kind.editable_params());
     if rec.kind != s.kind.kind()
         || rec.version != s.kind.version()
         || fixed(&rec.params) != fixed(&s.params)
@@ -190,16 +190,6 @@ pub fn find_parent(
         lineage,
         edited,
     }))
-}
-
-/// `params` without the top-level params `names`.
-fn without(mut params: serde_json::Value, names: &[&str]) -> serde_json::Value {
-    if let serde_json::Value::Object(m) = &mut params {
-        for name in names {
-            m.remove(*name);
-        }
-    }
-    params
 }
 
 /// Whether entry `m` was updated, directly or through a few updates in between, from the entry
