@@ -360,13 +360,12 @@ fn execute(
     if let Some((_, (dir, parent))) = &previous {
         // What the update left out is the parent's, byte for byte.
         let streamed = pending.streamed();
-        for t in &declared {
+        let left_out = declared
+            .iter()
+            .filter(|t| !tables.contains_key(*t) && !streamed.contains(t));
+        for t in left_out {
             let file = format!("{t}.parquet");
-            if let (false, false, Some(info)) = (
-                tables.contains_key(t),
-                streamed.contains(t),
-                parent.files.get(&file),
-            ) {
+            if let Some(info) = parent.files.get(&file) {
                 pending.keep(t, &dir.join(&file), info.clone())?;
             }
         }
