@@ -137,7 +137,8 @@ pub enum Command {
         /// Run only this stage; its inputs must already be up to date.
         #[arg(long, value_name = "STAGE")]
         only: Option<String>,
-        /// Re-run this stage even if cached. Repeatable.
+        /// Re-run this stage even if cached (an update again from its parent; with --cold from
+        /// scratch). Repeatable.
         #[arg(long, value_name = "STAGE")]
         force: Vec<String>,
         /// Re-run every selected stage.

@@ -83,7 +83,8 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
         "{why}"
     );
     assert!(
-        why.contains(" of 12 images intersected again (1 primitive changed)"),
+        why.contains(" of 12 images intersected again, ")
+            && why.contains(" % of their pixels (1 primitive changed)"),
         "{why}"
     );
     assert!(
@@ -106,6 +107,12 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
     // Once more: nothing to do.
     ws.run_ok(&["--set", EDIT]);
     assert_eq!(last(&ws, "rays").0, Outcome::Cached);
+    // Forced, the stage computes its entry again the same way: an update of the same parent.
+    ws.run_ok(&["--set", EDIT, "--force", "rays"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert_eq!(ws.stage_key("rays"), updated);
+    assert_eq!(manifest(&ws, &updated)["output_digest"], m["output_digest"]);
 
     // The same edit from scratch: another key, the same bytes.
     ws.run_ok(&["--set", EDIT, "--cold"]);

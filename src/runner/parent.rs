@@ -14,7 +14,7 @@ use stages::{Changed, Lineage};
 use crate::{
     config::Pipeline,
     fingerprint::{self, FILES_SLOT, PARENT_SLOT},
-    store::{Entry, InputInfo, Manifest, Store},
+    store::{Entry, InputInfo, Manifest, RunRecord, Store},
 };
 
 /// The entry a stage updates, with the entries it was computed from.
@@ -88,19 +88,21 @@ fn table_digest<'m>(m: &'m Manifest, table: &str) -> Option<&'m str> {
 /// The parent stage `i` can update, given its current `inputs` (with their entries' keys) and
 /// the current entry of each input slot (`current`). `Err(None)`: the stage computes from
 /// scratch for a reason not worth a word (its kind never updates, it never ran, `--cold`);
-/// `Err(Some(why))`: it could have updated, and why it does not.
+/// `Err(Some(why))`: it could have updated, and why it does not. `again` (`--force`): where the
+/// last run already updated an entry from these inputs, that entry is the parent once more.
 pub fn find_parent(
     p: &Pipeline,
     i: usize,
     store: &Store,
     inputs: &BTreeMap<String, InputInfo>,
     current: &dyn Fn(&str) -> Option<Box<Manifest>>,
+    again: bool,
 ) -> Result<Found, Option<String>> {
     let s = &p.stages[i];
     if !s.kind.updates() || !s.gather.is_empty() {
         return Err(None);
     }
-    let rec = store.run_record(&s.name).ok_or(None)?;
+    let mut rec = store.run_record(&s.name).ok_or(None)?;
     // Params that only say how to update, and those an update takes up (edits), may differ
     // from the parent's.
     let recipe = |v| fingerprint::recipe(s.kind.as_ref(), v);
@@ -120,6 +122,7 @@ pub fn find_parent(
     if slots(&rec.inputs) != slots(inputs) {
         return Err(Some("its inputs are connected differently".into()));
     }
+    let gone = |what: &str| Some(format!("{what} is no longer in the cache"));
     // The last run was an update from these very inputs: its entry is the current one (the
     // same parent and inputs give the same key), not a parent.
     if let Some(grand) = rec.inputs.get(PARENT_SLOT) {
@@ -127,11 +130,24 @@ pub fn find_parent(
             && slots(inputs)
                 .iter()
                 .all(|k| rec.inputs[k].digest == inputs[k].digest);
-        if same {
+        if same && !again {
             return Ok(Found::Current(grand.digest.clone()));
         }
+        if same {
+            let m = match store.check(&grand.digest, false) {
+                Entry::Valid(m) => m,
+                _ => return Err(gone(&format!("its parent {}", short_key(&grand.digest)))),
+            };
+            rec = RunRecord {
+                key: m.key,
+                kind: m.kind,
+                version: m.version,
+                params: m.params,
+                inputs: m.inputs,
+                history: Vec::new(),
+            };
+        }
     }
-    let gone = |what: &str| Some(format!("{what} is no longer in the cache"));
     let manifest = match store.check(&rec.key, false) {
         Entry::Valid(m) => m,
         _ => return Err(gone(&format!("its last entry {}", short_key(&rec.key)))),

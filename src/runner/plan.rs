@@ -275,7 +275,7 @@ pub fn resolve(
                 };
                 // A stale stage that can update its last run: the updated entry may exist.
                 if let (State::Stale(why), false) = (&state, corrupt) {
-                    let found = find_parent(p, i, store, &inputs, &upstream);
+                    let found = find_parent(p, i, store, &inputs, &upstream, false);
                     let parent = match &found {
                         Ok(Found::Parent(parent)) => parent.manifest.key.clone(),
                         Ok(Found::Current(parent)) => parent.clone(),

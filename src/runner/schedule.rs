@@ -290,13 +290,14 @@ impl<'a> Scheduler<'a> {
         }
     }
 
-    /// The entry stage `i` updates instead of computing from scratch (see [`find_parent`]).
+    /// The entry stage `i` updates instead of computing from scratch (see [`find_parent`]). A
+    /// forced stage computes its entry again the same way (an update stays an update).
     fn parent_for(
         &self,
         i: usize,
         inputs: &BTreeMap<String, InputInfo>,
     ) -> Result<Found, Option<String>> {
-        if self.opts.cold || self.force.contains(&i) || self.repairs.contains_key(&i) {
+        if self.opts.cold || self.repairs.contains_key(&i) {
             return Err(None);
         }
         let p = self.p;
@@ -304,7 +305,7 @@ impl<'a> Scheduler<'a> {
             let up = p.stages[i].inputs.get(slot)?;
             self.manifests.get(&p.index_of(up)?).cloned()
         };
-        find_parent(p, i, self.store, inputs, &current)
+        find_parent(p, i, self.store, inputs, &current, self.force.contains(&i))
     }
 
     /// Why stage `i` must run, or `None` when its entry is valid (then it is done: cached).

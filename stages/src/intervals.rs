@@ -176,7 +176,7 @@ impl ImagePlan {
         pixels: usize,
         prim_count: usize,
     ) -> Result<ImagePlan> {
-        Self::read_row(batch, r, pixels, prim_count, false)
+        Self::read_row(batch, r, pixels, prim_count, Read::Intervals)
     }
 
     /// Row `r` of a `ray_intervals` batch (the per-pixel columns the sampler reads; the
@@ -188,7 +188,18 @@ impl ImagePlan {
         pixels: usize,
         prim_count: usize,
     ) -> Result<ImagePlan> {
-        Self::read_row(batch, r, pixels, prim_count, true)
+        Self::read_row(batch, r, pixels, prim_count, Read::Sampler)
+    }
+
+    /// Row `r` of a `ray_intervals` batch, every per-pixel column (checked as
+    /// [`ImagePlan::from_row`] checks them).
+    pub fn whole_from_row(
+        batch: &RecordBatch,
+        r: usize,
+        pixels: usize,
+        prim_count: usize,
+    ) -> Result<ImagePlan> {
+        Self::read_row(batch, r, pixels, prim_count, Read::All)
     }
 
     fn read_row(
@@ -196,11 +207,11 @@ impl ImagePlan {
         r: usize,
         pixels: usize,
         prim_count: usize,
-        with_sky: bool,
+        what: Read,
     ) -> Result<ImagePlan> {
         const T: &str = "ray_intervals";
         let hits = tables::get_list::<UInt8Type>(batch, T, "hits")?.row(r);
-        let (sky0, sky1): (&[f32], &[f32]) = if with_sky {
+        let (sky0, sky1): (&[f32], &[f32]) = if what != Read::Intervals {
             (
                 tables::get_list::<Float32Type>(batch, T, "sky_t0")?.row(r),
                 tables::get_list::<Float32Type>(batch, T, "sky_t1")?.row(r),
@@ -208,7 +219,21 @@ impl ImagePlan {
         } else {
             (&[], &[])
         };
-        if hits.len() != pixels || (with_sky && (sky0.len() != pixels || sky1.len() != pixels)) {
+        let (first_label, first_instance): (&[u8], &[u32]) = if what == Read::All {
+            (
+                tables::get_list::<UInt8Type>(batch, T, "first_label")?.row(r),
+                tables::get_list::<UInt32Type>(batch, T, "first_instance")?.row(r),
+            )
+        } else {
+            (&[], &[])
+        };
+        let per_pixel = [
+            sky0.len(),
+            sky1.len(),
+            first_label.len(),
+            first_instance.len(),
+        ];
+        if hits.len() != pixels || per_pixel.iter().any(|&n| n != 0 && n != pixels) {
             return Err(StageError::Input(format!(
                 "{T} row {r}: per-pixel arrays do not have {pixels} entries"
             )));
@@ -237,10 +262,82 @@ impl ImagePlan {
             prim: pr.to_vec(),
             sky_t0: sky0.to_vec(),
             sky_t1: sky1.to_vec(),
-            first_label: Vec::new(),
-            first_instance: Vec::new(),
+            first_label: first_label.to_vec(),
+            first_instance: first_instance.to_vec(),
         })
     }
+
+    /// This image's plan after an edit of the primitives (`self`: its plan before, every
+    /// column; `prims` and `bvh`: the primitives after): the pixels in `meeting` (ascending:
+    /// those whose ray meets a changed primitive's old or new extent) are traced again, every
+    /// other pixel keeps its intervals with the ids renumbered by `old_to_new`. A kept pixel
+    /// whose renumbered ids would no longer be in the order a trace gives (equal entries, ids
+    /// swapped by a reordering) is traced again too. `None` where a kept pixel names a
+    /// primitive that changed: `meeting` missed it (the caller plans the image again).
+    #[allow(clippy::too_many_arguments)]
+    pub fn replanned(
+        &self,
+        meeting: &[u32],
+        old_to_new: &[Option<u32>],
+        prims: &[Primitive],
+        bvh: &Bvh,
+        cam: &Camera,
+        p: &IntersectParams,
+    ) -> Option<ImagePlan> {
+        let n = self.hits.len();
+        let mut out = ImagePlan {
+            hits: Vec::with_capacity(n),
+            t_in: Vec::with_capacity(self.t_in.len()),
+            t_out: Vec::with_capacity(self.t_out.len()),
+            prim: Vec::with_capacity(self.prim.len()),
+            sky_t0: Vec::with_capacity(n),
+            sky_t1: Vec::with_capacity(n),
+            first_label: Vec::with_capacity(n),
+            first_instance: Vec::with_capacity(n),
+        };
+        let (mut hits, mut ids) = (Vec::new(), Vec::new());
+        let mut meeting = meeting.iter().copied().peekable();
+        let mut off = 0usize;
+        for i in 0..n {
+            let count = self.hits[i] as usize;
+            let range = off..off + count;
+            off += count;
+            let mut again = meeting.next_if_eq(&(i as u32)).is_some();
+            if !again {
+                ids.clear();
+                for &o in &self.prim[range.clone()] {
+                    ids.push(old_to_new.get(o as usize).copied().flatten()?);
+                }
+                let t = &self.t_in[range.clone()];
+                again = (1..count).any(|j| t[j - 1] == t[j] && ids[j - 1] > ids[j]);
+            }
+            if again {
+                let ray = cam.pixel_ray(i as u32 % cam.width, i as u32 / cam.width);
+                match &ray {
+                    Some(ray) => bvh.intersect_all(prims, ray, 0.0, p.far, &mut hits),
+                    None => hits.clear(),
+                }
+                out.push_pixel(prims, ray.as_ref(), &hits, p);
+                continue;
+            }
+            out.hits.push(self.hits[i]);
+            out.t_in.extend_from_slice(&self.t_in[range.clone()]);
+            out.t_out.extend_from_slice(&self.t_out[range]);
+            out.prim.extend_from_slice(&ids);
+            out.sky_t0.push(self.sky_t0[i]);
+            out.sky_t1.push(self.sky_t1[i]);
+            out.first_label.push(self.first_label[i]);
+            out.first_instance.push(self.first_instance[i]);
+        }
+        Some(out)
+    }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Read {
+    Intervals,
+    Sampler,
+    All,
 }
 
 /// The plan of one image: rows of pixels in parallel (rayon), one hit buffer per row.

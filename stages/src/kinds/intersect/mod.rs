@@ -18,7 +18,8 @@ impl TypedStage for Intersect {
     type Params = IntersectParams;
     const KIND: &'static str = "intersect";
     // 4: `cameras` defaults to every camera of the scene (the same plan for the same cameras).
-    const VERSION: u32 = 4;
+    // 5: an update after a reordering of the primitives keeps tied entries in trace order.
+    const VERSION: u32 = 5;
     const DESCRIPTION: &'static str =
         "ray-primitive intervals of every pixel (the first k per ray, plus a sky interval)";
     const INPUTS: &'static [InputSlot] = &[InputSlot {

@@ -384,3 +384,64 @@ fn an_update_after_an_edit_equals_a_run_from_scratch() {
         assert!(u.redone.ends_with("(1 primitive changed)"), "{}", u.redone);
     }
 }
+
+/// Two boxes around the camera (every ray enters both at t = 0: tied entries, ordered by id)
+/// and the tiny scene's two primitives; the table reordered (nothing else changed) and then one
+/// box removed. The update must give the order a trace gives, not the previous order
+/// renumbered, and must trace again exactly the pixels that need it.
+#[test]
+fn a_reordered_table_keeps_tied_entries_in_trace_order() {
+    use crate::stage::{Changed, Previous};
+    let before = scene(0);
+    let mut prims = geometry::primitives_from_table(&before["primitives"]).unwrap();
+    for (size, label) in [(3.0, labels::ROAD), (4.0, labels::BUILDING)] {
+        prims.push(
+            Primitive::new(
+                Shape::Cuboid,
+                DAffine3::from_scale(DVec3::splat(size)),
+                label,
+                0,
+            )
+            .unwrap(),
+        );
+    }
+    let table = |v: &[Primitive]| {
+        let mut t = before.clone();
+        t.insert("primitives".into(), primitives_to_table(v).unwrap());
+        t
+    };
+    let p = IntersectParams::default();
+    let old_scene = table(&prims);
+    let old_out = run(&p, &old_scene).unwrap();
+    let reordered = vec![
+        prims[3].clone(),
+        prims[0].clone(),
+        prims[2].clone(),
+        prims[1].clone(),
+    ];
+    let removed = vec![prims[3].clone(), prims[0].clone(), prims[1].clone()];
+    for (what, edited) in [
+        ("reordered", reordered),
+        ("reordered, one removed", removed),
+    ] {
+        let after = table(&edited);
+        let cold = run(&p, &after).unwrap();
+        let changed = Changed::from([("scene".to_string(), ["primitives".to_string()].into())]);
+        let outputs = TableSet::from(Tables::from([(
+            "ray_intervals".to_string(),
+            old_out.clone(),
+        )]));
+        let inputs = TableSet::from(old_scene.clone());
+        let previous = Previous {
+            outputs: &outputs,
+            inputs: [("scene".to_string(), &inputs)].into(),
+            changed: &changed,
+            lineage: &Default::default(),
+        };
+        let mem = MemoryInputs::new([("scene", after)]);
+        let u = TypedStage::update(&Intersect, &p, &mem.inputs(), &previous, &NoProgress).unwrap();
+        assert_eq!(u.tables["ray_intervals"], cold, "{what}");
+        // The order changed: every pixel's ids differ from the previous ones.
+        assert_ne!(u.tables["ray_intervals"], old_out, "{what}");
+    }
+}

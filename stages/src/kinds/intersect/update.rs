@@ -1,7 +1,7 @@
-//! Updating the plan after an edit of the primitives: only the images a ray of which can meet a
-//! changed primitive (its old or its new extent) are intersected again; every other image's
-//! row is the previous one, its primitive ids renumbered where a removal shifted them. The
-//! result equals a run from scratch.
+//! Updating the plan after an edit of the primitives: in the images a ray of which can meet a
+//! changed primitive (its old or its new extent) the pixels whose ray meets one are traced
+//! again; every other pixel, and every other image's row, is the previous one, its primitive
+//! ids renumbered where a removal shifted them. The result equals a run from scratch.
 
 use std::sync::Arc;
 
@@ -12,8 +12,12 @@ use arrow::{
     record_batch::RecordBatch,
 };
 
-use crate::geometry::{self, changes::ChangeView, Bvh, CameraRow, PrimitiveChanges};
-use crate::intervals::{plan_image, plan_row, IntersectParams};
+use crate::geometry::{
+    self,
+    changes::{pixels_meeting, ChangeView},
+    Bvh, CameraRow, PrimitiveChanges,
+};
+use crate::intervals::{plan_image, plan_row, ImagePlan, IntersectParams};
 use crate::kinds::edited::Edited;
 use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
 use crate::tables;
@@ -61,29 +65,52 @@ pub(super) fn update(
     progress: &dyn Progress,
 ) -> Result<Updated> {
     let edited = Edited::read(previous, inputs)?;
-    let mut view = ChangeView::new(&edited.extents());
+    let extents = edited.extents();
+    let mut view = ChangeView::new(&extents);
     let (changes, prims) = (&edited.changes, &edited.new);
+    // Removing or adding keeps the ids in order; a reordered table may swap tied entries.
+    let in_order = changes
+        .old_to_new
+        .iter()
+        .flatten()
+        .is_sorted_by(|a, b| a < b);
     let rows = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let rows = selected_rows(&rows, p)?;
     let before = previous.output("ray_intervals")?;
     let before_rows = before.image_rows()?;
     let bvh = Bvh::build(prims);
     let mut out = inputs.writer("ray_intervals")?;
-    let (total, mut redone) = (rows.len(), 0usize);
+    let total = rows.len();
+    let (mut redone, mut pixels, mut traced) = (0usize, 0usize, 0usize);
     let sees: Vec<bool> = rows.iter().map(|r| view.seen_by(&r.cam, p.far)).collect();
-    // The previous row (renumbered) where the image cannot see the change, else planned again.
-    let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<(RecordBatch, bool)> {
-        let reused = match before_rows.get(&(row.frame, row.camera)) {
-            Some(&r) if !sees_change => renumbered(&before.row(r)?, changes)?,
-            _ => None,
+    // An image that cannot see the change keeps its previous row (renumbered); in one that
+    // can, the pixels whose ray meets a changed extent are traced again.
+    let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<(RecordBatch, Option<usize>)> {
+        let Some(&r) = before_rows.get(&(row.frame, row.camera)) else {
+            let plan = plan_image(prims, &bvh, &row.cam, p);
+            let n = plan.len();
+            return Ok((plan_row(row, plan, p)?, Some(n)));
         };
-        Ok(match reused {
-            Some(batch) => (batch, false),
-            None => (
-                plan_row(row, plan_image(prims, &bvh, &row.cam, p), p)?,
-                true,
-            ),
-        })
+        let before_row = before.row(r)?;
+        if !sees_change && in_order {
+            if let Some(batch) = renumbered(&before_row, changes)? {
+                return Ok((batch, None));
+            }
+        }
+        let n = (row.cam.width * row.cam.height) as usize;
+        let old = ImagePlan::whole_from_row(&before_row, 0, n, edited.old.len())?;
+        let meeting = if sees_change {
+            pixels_meeting(&row.cam, &extents, p.far)
+        } else {
+            Vec::new()
+        };
+        let plan = old
+            .replanned(&meeting, &changes.old_to_new, prims, &bvh, &row.cam, p)
+            .unwrap_or_else(|| plan_image(prims, &bvh, &row.cam, p));
+        Ok((
+            plan_row(row, plan, p)?,
+            sees_change.then_some(meeting.len()),
+        ))
     };
     // A few images at a time in parallel (reading and renumbering a row is serial work), written
     // in order.
@@ -95,11 +122,15 @@ pub(super) fn update(
             total as u64,
             &format!("frame {} camera {}", first.frame, first.camera),
         );
-        let done: Vec<Result<(RecordBatch, bool)>> =
+        let done: Vec<Result<(RecordBatch, Option<usize>)>> =
             chunk.par_iter().zip(sees.par_iter()).map(one).collect();
-        for d in done {
+        for (d, row) in done.into_iter().zip(chunk) {
             let (batch, again) = d?;
-            redone += usize::from(again);
+            if let Some(m) = again {
+                redone += 1;
+                traced += m;
+                pixels += (row.cam.width * row.cam.height) as usize;
+            }
             out.write(batch)?;
         }
     }
@@ -110,7 +141,8 @@ pub(super) fn update(
     Ok(Updated {
         tables,
         redone: format!(
-            "{redone} of {total} images intersected again ({n_changed} primitive{} changed)",
+            "{redone} of {total} images intersected again, {:.1} % of their pixels ({n_changed} primitive{} changed)",
+            100.0 * traced as f64 / pixels.max(1) as f64,
             if n_changed == 1 { "" } else { "s" }
         ),
     })
