@@ -140,6 +140,19 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
         after["output_digest"]
     );
 
+    // A removal renumbers the ids after it in every image's plan (rows the update copies with
+    // their `prim` column replaced): still the bytes of a run from scratch.
+    const REMOVE: &str = "scene.edits=[{primitive: 57, remove: true}]";
+    ws.run_ok(&["--set", REMOVE]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    let removed = ws.stage_key("rays");
+    ws.run_ok(&["--set", REMOVE, "--cold"]);
+    assert!(
+        read(&ws.stage_key("rays")) == read(&removed),
+        "after a removal the update's bytes differ from the cold run's"
+    );
+
     // The same parent and the same edit in another cache: the same key and bytes.
     let other = Workspace::new(PIPELINE);
     other.run_ok(&[]);

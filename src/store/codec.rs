@@ -22,11 +22,12 @@ use arrow::{
 use parquet::{
     arrow::{
         arrow_reader::{ArrowReaderMetadata, ParquetRecordBatchReaderBuilder},
+        arrow_writer::{compute_leaves, ArrowRowGroupWriterFactory},
         ArrowWriter, ProjectionMask,
     },
     basic::Compression,
     errors::ParquetError,
-    file::properties::WriterProperties,
+    file::{properties::WriterProperties, writer::SerializedFileWriter},
 };
 use stages::stream::RowSource;
 
@@ -90,22 +91,55 @@ fn rows_per_group(batch: &RecordBatch) -> usize {
 }
 
 /// A Parquet writer of one table into `out`, a row group per [`TableEncoder::write`] call.
+/// It encodes as parquet's `ArrowWriter` does, a row group at a time, through the writer's
+/// lower level, so that a row group can also be copied from another file as it is stored
+/// ([`TableEncoder::splice`]).
 pub struct TableEncoder<W: Write + Send> {
-    writer: ArrowWriter<W>,
+    pub(super) writer: SerializedFileWriter<W>,
+    pub(super) factory: ArrowRowGroupWriterFactory,
+    pub(super) schema: SchemaRef,
 }
 
 impl<W: Write + Send> TableEncoder<W> {
     pub fn new(out: W, schema: SchemaRef) -> Result<Self, CodecError> {
         let props = properties(&schema)?;
+        let (writer, factory) =
+            ArrowWriter::try_new(out, schema.clone(), Some(props))?.into_serialized_writer()?;
         Ok(Self {
-            writer: ArrowWriter::try_new(out, schema, Some(props))?,
+            writer,
+            factory,
+            schema,
         })
     }
 
     /// Appends `batch` as one row group (or more, for batches over a million rows).
     pub fn write(&mut self, batch: &RecordBatch) -> Result<(), CodecError> {
-        self.writer.write(batch)?;
-        self.writer.flush()?;
+        let mut start = 0;
+        while start < batch.num_rows() {
+            let len = MAX_GROUP_ROWS.min(batch.num_rows() - start);
+            self.write_group(&batch.slice(start, len))?;
+            start += len;
+        }
+        Ok(())
+    }
+
+    /// One row group, encoded as `ArrowWriter` encodes it.
+    fn write_group(&mut self, batch: &RecordBatch) -> Result<(), CodecError> {
+        let group = self.writer.flushed_row_groups().len();
+        let mut writers = self.factory.create_column_writers(group)?;
+        let mut next = writers.iter_mut();
+        for (field, column) in self.schema.fields().iter().zip(batch.columns()) {
+            for leaf in compute_leaves(field, column)? {
+                next.next()
+                    .ok_or_else(|| ParquetError::General("more leaves than columns".into()))?
+                    .write(&leaf)?;
+            }
+        }
+        let mut out = self.writer.next_row_group()?;
+        for w in writers {
+            w.close()?.append_to_row_group(&mut out)?;
+        }
+        out.close()?;
         Ok(())
     }
 
@@ -190,11 +224,13 @@ impl Write for HashingFile {
 /// the row groups that hold the rows are decoded.
 pub struct StoredTable {
     path: PathBuf,
-    file: Arc<File>,
-    len: u64,
-    meta: ArrowReaderMetadata,
+    pub(super) file: Arc<File>,
+    pub(super) len: u64,
+    pub(super) meta: ArrowReaderMetadata,
     /// First row of each row group, and the row count at the end.
-    starts: Vec<usize>,
+    pub(super) starts: Vec<usize>,
+    /// The file's metadata with its page indexes, once a row group is copied from it.
+    pub(super) indexed: std::sync::OnceLock<Option<Arc<parquet::file::metadata::ParquetMetaData>>>,
 }
 
 impl StoredTable {
@@ -212,6 +248,7 @@ impl StoredTable {
             len,
             meta,
             starts,
+            indexed: Default::default(),
         })
     }
 
@@ -268,7 +305,7 @@ impl StoredTable {
 /// cloned handle, and clones share one offset, so readers of one table on several threads
 /// would read each other's bytes.
 /// The file and its length, taken when the table was opened.
-struct Positional(Arc<File>, u64);
+pub(super) struct Positional(pub(super) Arc<File>, pub(super) u64);
 
 impl parquet::file::reader::Length for Positional {
     fn len(&self) -> u64 {
@@ -277,7 +314,7 @@ impl parquet::file::reader::Length for Positional {
 }
 
 /// A [`std::io::Read`] at a position of a [`Positional`] file.
-struct PositionalRead {
+pub(super) struct PositionalRead {
     file: Arc<File>,
     at: u64,
 }
@@ -325,6 +362,10 @@ impl RowSource for StoredTable {
                 self.path.display()
             ))
         })
+    }
+
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        Some(self)
     }
 }
 
@@ -434,5 +475,54 @@ mod tests {
         .unwrap();
         assert_eq!(meta, 1);
         assert_eq!(read_parquet(bytes).unwrap(), b);
+    }
+
+    /// The encoder's own row groups are the bytes parquet's `ArrowWriter` writes (a row group
+    /// per batch): entries written before it took the lower level stay valid.
+    #[test]
+    fn the_encoder_writes_the_bytes_arrow_writer_writes() {
+        use arrow::array::{Float32Array, ListArray};
+        use arrow::datatypes::{Float32Type, UInt8Type};
+        let lists = |n: usize, seed: u32| {
+            ListArray::from_iter_primitive::<UInt8Type, _, _>((0..n).map(|i| {
+                Some((0..(i + seed as usize) % 5).map(move |j| Some((i * 7 + j) as u8)))
+            }))
+        };
+        let floats = |n: usize, seed: u32| {
+            ListArray::from_iter_primitive::<Float32Type, _, _>(
+                (0..n).map(|i| Some((0..i % 3).map(move |j| Some(i as f32 * 0.5 - j as f32 + seed as f32)))),
+            )
+        };
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("n", DataType::UInt32, false),
+            Field::new("x", DataType::Float32, false),
+            Field::new("l", lists(1, 0).data_type().clone(), false),
+            Field::new("f", floats(1, 0).data_type().clone(), false),
+            Field::new("b", DataType::Binary, false),
+        ]));
+        let batch = |n: usize, seed: u32| {
+            RecordBatch::try_new(
+                schema.clone(),
+                vec![
+                    Arc::new(UInt32Array::from_iter_values((0..n as u32).map(|i| i * seed))),
+                    Arc::new(Float32Array::from_iter_values((0..n).map(|i| i as f32 / 3.0))),
+                    Arc::new(lists(n, seed)),
+                    Arc::new(floats(n, seed)),
+                    Arc::new(BinaryArray::from_iter_values((0..n).map(|i| vec![i as u8; i % 9]))),
+                ],
+            )
+            .unwrap()
+        };
+        let batches = [batch(1000, 1), batch(1, 2), batch(0, 3), batch(5000, 4)];
+        let mut ours = TableEncoder::new(Vec::new(), schema.clone()).unwrap();
+        let mut theirs =
+            ArrowWriter::try_new(Vec::new(), schema.clone(), Some(properties(&schema).unwrap()))
+                .unwrap();
+        for b in &batches {
+            ours.write(b).unwrap();
+            theirs.write(b).unwrap();
+            theirs.flush().unwrap();
+        }
+        assert!(ours.finish().unwrap() == theirs.into_inner().unwrap());
     }
 }

@@ -29,6 +29,7 @@
 //! run records (`records`), hash memos (`memo`), file helpers (`files`) and [`StoreError`].
 
 mod codec;
+mod splice;
 mod entry;
 mod error;
 mod files;

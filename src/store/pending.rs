@@ -18,7 +18,7 @@ use stages::{
 };
 
 use super::{
-    codec::{HashingFile, TableEncoder},
+    codec::{HashingFile, StoredTable, TableEncoder},
     error::StoreError,
 };
 use crate::error::IoContext;
@@ -157,6 +157,33 @@ impl TableSink for ParquetSink {
         enc.write(batch).map_err(|e| {
             StageError::Failed(format!("writing {} (disk full?): {e}", self.path.display()))
         })
+    }
+
+    /// Copies the row's other columns as stored where `from` is a table of the cache whose
+    /// row is a row group of its own; otherwise decodes the row.
+    fn write_from(
+        &mut self,
+        from: &stages::stream::Table,
+        row: usize,
+        replaced: &[(&str, arrow::array::ArrayRef)],
+    ) -> stages::Result<()> {
+        let stored = from
+            .stored_source()
+            .and_then(|s| s.as_any())
+            .and_then(|a| a.downcast_ref::<StoredTable>());
+        if let Some((t, group)) = stored.and_then(|t| Some((t, t.group_alone(row)?))) {
+            let enc = self
+                .encoder
+                .as_mut()
+                .ok_or_else(|| StageError::Failed(format!("table `{}` is finished", self.table)))?;
+            let spliced = enc.splice(t, group, replaced).map_err(|e| {
+                StageError::Failed(format!("writing {} (disk full?): {e}", self.path.display()))
+            })?;
+            if spliced {
+                return Ok(());
+            }
+        }
+        self.write(&from.row_with(row, replaced)?)
     }
 
     fn finish(mut self: Box<Self>) -> stages::Result<()> {

@@ -7,7 +7,9 @@
 
 use std::{collections::BTreeMap, ops::Range, sync::OnceLock};
 
-use arrow::{compute::concat_batches, datatypes::SchemaRef, record_batch::RecordBatch};
+use arrow::{
+    array::ArrayRef, compute::concat_batches, datatypes::SchemaRef, record_batch::RecordBatch,
+};
 
 use crate::error::{Result, StageError};
 
@@ -20,6 +22,11 @@ pub trait RowSource: Send + Sync {
     fn num_rows(&self) -> usize;
     /// Rows `range` with only the named `columns` (every column when `None`), as one batch.
     fn read(&self, range: Range<usize>, columns: Option<&[&str]>) -> Result<RecordBatch>;
+    /// The source itself, for a sink that copies its rows without decoding them (see
+    /// [`TableSink::write_from`]).
+    fn as_any(&self) -> Option<&dyn std::any::Any> {
+        None
+    }
 }
 
 /// A table an input slot hands to a stage: in memory, or stored and read on demand.
@@ -104,6 +111,32 @@ impl Table {
     /// Row `i`, every column.
     pub fn row(&self, i: usize) -> Result<RecordBatch> {
         self.rows(i..i + 1, None)
+    }
+
+    /// Where a stored table's rows come from (`None` in memory).
+    pub fn stored_source(&self) -> Option<&dyn RowSource> {
+        match &self.source {
+            Source::Stored(s) => Some(s.as_ref()),
+            Source::Memory(_) => None,
+        }
+    }
+
+    /// Row `i` with the columns of `replaced` in place of its own (each one row long, of the
+    /// same type).
+    pub fn row_with(&self, i: usize, replaced: &[(&str, ArrayRef)]) -> Result<RecordBatch> {
+        let row = self.row(i)?;
+        if replaced.is_empty() {
+            return Ok(row);
+        }
+        let mut cols = row.columns().to_vec();
+        for (name, col) in replaced {
+            let at = row.schema().index_of(name).map_err(|_| {
+                StageError::Input(format!("table `{}` has no column `{name}`", self.name))
+            })?;
+            cols[at] = col.clone();
+        }
+        RecordBatch::try_new(row.schema(), cols)
+            .map_err(|e| StageError::Failed(format!("replacing columns of `{}`: {e}", self.name)))
     }
 
     /// The row of each image of a per-image table, by (frame, camera), read from those two
@@ -200,6 +233,12 @@ impl From<Tables> for TableSet {
 pub trait TableSink: Send {
     /// Appends `batch` (its schema checked against the table's schema file) as its own piece.
     fn write(&mut self, batch: &RecordBatch) -> Result<()>;
+    /// Appends row `row` of `from` (a table of this one's schema) with the columns of
+    /// `replaced` in place of its own, as its own piece. The runner copies the row's other
+    /// columns as they are stored, without decoding them; this default decodes the row.
+    fn write_from(&mut self, from: &Table, row: usize, replaced: &[(&str, ArrayRef)]) -> Result<()> {
+        self.write(&from.row_with(row, replaced)?)
+    }
     /// Ends the table.
     fn finish(self: Box<Self>) -> Result<()>;
 }
@@ -239,6 +278,24 @@ impl TableWriter {
             Target::Sink(s) => s.write(&batch),
             Target::Memory(v) => {
                 v.push(batch);
+                Ok(())
+            }
+        }
+    }
+
+    /// Appends row `row` of `from` with the columns of `replaced` in place of its own (see
+    /// [`TableSink::write_from`]): what an update keeps of its previous output, copied as
+    /// stored where the runner can.
+    pub fn write_from(
+        &mut self,
+        from: &Table,
+        row: usize,
+        replaced: &[(&str, ArrayRef)],
+    ) -> Result<()> {
+        match &mut self.to {
+            Target::Sink(s) => s.write_from(from, row, replaced),
+            Target::Memory(v) => {
+                v.push(from.row_with(row, replaced)?);
                 Ok(())
             }
         }

@@ -3,14 +3,7 @@
 //! again; every other pixel, and every other image's row, is the previous one, its primitive
 //! ids renumbered where a removal shifted them. The result equals a run from scratch.
 
-use std::sync::Arc;
-
-use arrow::{
-    array::{Array, ArrayRef, ListArray, UInt32Array},
-    buffer::OffsetBuffer,
-    datatypes::UInt32Type,
-    record_batch::RecordBatch,
-};
+use arrow::{array::ArrayRef, datatypes::UInt32Type, record_batch::RecordBatch};
 
 use crate::geometry::{
     self,
@@ -19,7 +12,7 @@ use crate::geometry::{
 };
 use crate::intervals::{plan_image, plan_row, ImagePlan, IntersectParams};
 use crate::kinds::edited::Edited;
-use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Tables, Updated};
+use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Table, Tables, Updated};
 use crate::tables;
 use rayon::prelude::*;
 
@@ -85,20 +78,19 @@ pub(super) fn update(
     let sees: Vec<bool> = rows.iter().map(|r| view.seen_by(&r.cam, p.far)).collect();
     // An image that cannot see the change keeps its previous row (renumbered); in one that
     // can, the pixels whose ray meets a changed extent are traced again.
-    let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<(RecordBatch, Option<usize>)> {
+    let one = |(row, &sees_change): (&&CameraRow, &bool)| -> Result<Image> {
         let Some(&r) = before_rows.get(&(row.frame, row.camera)) else {
             let plan = plan_image(prims, &bvh, &row.cam, p);
             let n = plan.len();
-            return Ok((plan_row(row, plan, p)?, Some(n)));
+            return Ok(Image::Planned(plan_row(row, plan, p)?, Some(n)));
         };
-        let before_row = before.row(r)?;
         if !sees_change && in_order {
-            if let Some(batch) = renumbered(&before_row, changes)? {
-                return Ok((batch, None));
+            if let Some(prim) = renumbered(before, r, changes)? {
+                return Ok(Image::Kept(r, prim));
             }
         }
         let n = (row.cam.width * row.cam.height) as usize;
-        let old = ImagePlan::whole_from_row(&before_row, 0, n, edited.old.len())?;
+        let old = ImagePlan::whole_from_row(&before.row(r)?, 0, n, edited.old.len())?;
         let meeting = if sees_change {
             pixels_meeting(&row.cam, &extents, p.far)
         } else {
@@ -107,13 +99,12 @@ pub(super) fn update(
         let plan = old
             .replanned(&meeting, &changes.old_to_new, prims, &bvh, &row.cam, p)
             .unwrap_or_else(|| plan_image(prims, &bvh, &row.cam, p));
-        Ok((
+        Ok(Image::Planned(
             plan_row(row, plan, p)?,
             sees_change.then_some(meeting.len()),
         ))
     };
-    // A few images at a time in parallel (reading and renumbering a row is serial work), written
-    // in order.
+    // A few images at a time in parallel, written in order; a kept row is copied as stored.
     const AT_ONCE: usize = 4;
     for (c, (chunk, sees)) in rows.chunks(AT_ONCE).zip(sees.chunks(AT_ONCE)).enumerate() {
         let first = &chunk[0];
@@ -122,16 +113,20 @@ pub(super) fn update(
             total as u64,
             &format!("frame {} camera {}", first.frame, first.camera),
         );
-        let done: Vec<Result<(RecordBatch, Option<usize>)>> =
-            chunk.par_iter().zip(sees.par_iter()).map(one).collect();
+        let done: Vec<Result<Image>> = chunk.par_iter().zip(sees.par_iter()).map(one).collect();
         for (d, row) in done.into_iter().zip(chunk) {
-            let (batch, again) = d?;
-            if let Some(m) = again {
-                redone += 1;
-                traced += m;
-                pixels += (row.cam.width * row.cam.height) as usize;
+            match d? {
+                Image::Kept(r, None) => out.write_from(before, r, &[])?,
+                Image::Kept(r, Some(prim)) => out.write_from(before, r, &[("prim", prim)])?,
+                Image::Planned(batch, again) => {
+                    if let Some(m) = again {
+                        redone += 1;
+                        traced += m;
+                        pixels += (row.cam.width * row.cam.height) as usize;
+                    }
+                    out.write(batch)?;
+                }
             }
-            out.write(batch)?;
         }
     }
     progress.update(total as u64, total as u64, "done");
@@ -148,13 +143,27 @@ pub(super) fn update(
     })
 }
 
-/// The previous row of an image that sees no change, with its primitive ids renumbered; `None`
-/// when it names a primitive that changed after all (then it is intersected again).
-fn renumbered(row: &RecordBatch, changes: &PrimitiveChanges) -> Result<Option<RecordBatch>> {
+/// What becomes of one image's row.
+enum Image {
+    /// Previous row `r`, with this `prim` column where a removal renumbered its ids.
+    Kept(usize, Option<ArrayRef>),
+    /// Planned (again): the row, and the pixels traced again where the image sees the change.
+    Planned(RecordBatch, Option<usize>),
+}
+
+/// What previous row `r` (an image that sees no change) keeps: `Some(None)` every id as it was,
+/// `Some(Some(prim))` its `prim` column renumbered; `None` where it names a primitive that
+/// changed after all (then the image is planned again).
+fn renumbered(
+    before: &Table,
+    r: usize,
+    changes: &PrimitiveChanges,
+) -> Result<Option<Option<ArrayRef>>> {
     if !changes.renumbers() {
-        return Ok(Some(row.clone()));
+        return Ok(Some(None));
     }
-    let ids = tables::get_list::<UInt32Type>(row, "ray_intervals", "prim")?.row(0);
+    let row = before.rows(r..r + 1, Some(&["prim"]))?;
+    let ids = tables::get_list::<UInt32Type>(&row, "ray_intervals", "prim")?.row(0);
     let mut mapped = Vec::with_capacity(ids.len());
     for &id in ids {
         match changes.old_to_new.get(id as usize).copied().flatten() {
@@ -162,26 +171,5 @@ fn renumbered(row: &RecordBatch, changes: &PrimitiveChanges) -> Result<Option<Re
             None => return Ok(None),
         }
     }
-    let idx = row
-        .schema()
-        .index_of("prim")
-        .map_err(|e| StageError::Input(format!("ray_intervals: {e}")))?;
-    let old = row.column(idx);
-    let list = old
-        .as_any()
-        .downcast_ref::<ListArray>()
-        .ok_or_else(|| StageError::Input("ray_intervals: `prim` is not a list".into()))?;
-    let field = match list.data_type() {
-        arrow::datatypes::DataType::List(f) => f.clone(),
-        _ => unreachable!("a ListArray's type is List"),
-    };
-    let values: ArrayRef = Arc::new(UInt32Array::from(mapped));
-    let offsets = OffsetBuffer::from_lengths([ids.len()]);
-    let new_list = ListArray::try_new(field, offsets, values, None)
-        .map_err(|e| StageError::Failed(format!("renumbering primitive ids: {e}")))?;
-    let mut cols = row.columns().to_vec();
-    cols[idx] = Arc::new(new_list);
-    RecordBatch::try_new(row.schema(), cols)
-        .map(Some)
-        .map_err(|e| StageError::Failed(format!("renumbering primitive ids: {e}")))
+    Ok(Some(Some(tables::list::<UInt32Type>([mapped]))))
 }

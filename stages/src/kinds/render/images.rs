@@ -42,32 +42,31 @@ pub(super) struct Rendered {
 }
 
 /// What becomes of one image.
-enum Part {
+enum Part<'a> {
     /// Rendered whole.
     Whole,
-    /// The previous row, as it was.
-    Keep(RecordBatch),
+    /// The previous row (of this table), as it was.
+    Keep(&'a Table, usize),
     /// The previous maps with these pixels rendered again.
     Again(ImageMaps, Vec<bool>),
 }
 
-impl Previously<'_> {
+impl<'a> Previously<'a> {
     /// What an update does with image (`frame`, `camera`) of camera `cam` (rays no farther than
     /// `far`, pixels decided on a grid of spacing `stride`).
-    fn part(&mut self, key: (u32, u8), cam: &Camera, far: f64, stride: u32) -> Result<Part> {
+    fn part(&mut self, key: (u32, u8), cam: &Camera, far: f64, stride: u32) -> Result<Part<'a>> {
         let Some(&row) = self.rows.get(&key) else {
             return Ok(Part::Whole);
         };
-        let before = self.maps.row(row)?;
         if !self.view.seen_by(cam, far) {
-            return Ok(Part::Keep(before));
+            return Ok(Part::Keep(self.maps, row));
         }
         let meeting = pixels_meeting(cam, &self.changed, far);
         if meeting.is_empty() {
-            return Ok(Part::Keep(before));
+            return Ok(Part::Keep(self.maps, row));
         }
         let pixels = coarse_cells_of(cam.width, cam.height, stride, &meeting);
-        Ok(Part::Again(maps_from_row(&before)?, pixels))
+        Ok(Part::Again(maps_from_row(&self.maps.row(row)?)?, pixels))
     }
 }
 
@@ -180,6 +179,19 @@ pub(super) fn render_all(
     for &(row, (frame, camera)) in &planned {
         let cam = &camera_of((frame, camera))?.cam;
         let n = (cam.width * cam.height) as usize;
+        let part = match previously.as_mut() {
+            Some(prev) => prev.part((frame, camera), cam, ip.far, p.coarse_stride)?,
+            None => Part::Whole,
+        };
+        // A kept image is copied as stored, unread (its sky colour only matters to novel views).
+        if let (Part::Keep(maps, before), true) = (&part, novel.is_empty()) {
+            out.write_from(maps, *before, &[])?;
+            counts.images += 1;
+            counts.pixels += n as u64;
+            done += n as u64;
+            progress.update(done, total, &format!("frame {frame} cam {camera}"));
+            continue;
+        }
         let image_plan = ImagePlan::from_row(&plan.row(row)?, 0, n, prims.len())?;
         let rays = PlannedImage::new(&info, cam, &image_plan)?;
         let input = image_rows.get(&(frame, camera)).ok_or_else(|| {
@@ -195,10 +207,6 @@ pub(super) fn render_all(
             }
         };
         let sky_in = SkyColour::FromInput(rgb);
-        let part = match previously.as_mut() {
-            Some(prev) => prev.part((frame, camera), cam, ip.far, p.coarse_stride)?,
-            None => Part::Whole,
-        };
         let sky = counts.render(
             &r,
             &rays,
@@ -288,8 +296,8 @@ impl Rendered {
         self.images += 1;
         self.pixels += n;
         let (maps, sky) = match part {
-            Part::Keep(before) => {
-                out.write(before)?;
+            Part::Keep(maps, before) => {
+                out.write_from(maps, before, &[])?;
                 return sky_colour(rays, in_lens, sky).map_err(|e| {
                     StageError::Input(format!("images: frame {frame} camera {camera}: {e}"))
                 });
