@@ -171,3 +171,69 @@ fn bad_suites_are_usage_errors_naming_the_file_and_key() {
         "nothing is written for a bad suite"
     );
 }
+
+/// `pipe bench --suite` with an edits suite, on a tiny street: the run before the edit, the
+/// update and the run from scratch, each a `pipe run` of its own; the report names what every
+/// stage did. Run twice, the second bench computes the updates again (their time is measured,
+/// never a record of the first bench's) while the runs from scratch are found cached.
+#[test]
+fn an_edits_suite_measures_every_update_afresh() {
+    const PIPELINE: &str = "
+stages:
+  scene:
+    uses: synthetic_scene
+    params: {frames: 4, scale: 0.0625}
+  rays:
+    uses: intersect
+    inputs: {scene: scene}
+  train:
+    uses: train
+    inputs: {scene: scene, rays: rays}
+    params:
+      schedule: {iterations: 30, rays_per_batch: 256}
+      update: {iterations: 10}
+  render:
+    uses: render
+    inputs: {scene: scene, rays: rays, train: train}
+";
+    let ws = Workspace::new(PIPELINE);
+    fs::write(
+        ws.dir().join("edits.yaml"),
+        "name: edits
+until: render
+edits_param: scene.edits
+scenes:
+  - {name: street}
+edits:
+  - name: relabel
+    label: car 93 becomes a caravan
+    object: 93
+    edits: [{primitive: 93, class: caravan}]
+",
+    )
+    .unwrap();
+    for round in 0..2 {
+        let (code, out, err) = ws.cmd("bench", &["--suite", "edits.yaml", "--out", "out"]);
+        assert_eq!(code, 0, "stdout:\n{out}\nstderr:\n{err}");
+        let md = fs::read_to_string(ws.dir().join("out/REPORT.md")).unwrap();
+        let line = md
+            .lines()
+            .find(|l| l.trim_start().starts_with("- update:"))
+            .unwrap_or_else(|| panic!("no update line:\n{md}"));
+        for stage in ["rays", "train", "render"] {
+            assert!(
+                line.contains(&format!("{stage}: updated: ")),
+                "round {round}: {stage} was not updated now: {line}"
+            );
+        }
+        assert!(!line.contains("cached"), "round {round}: {line}");
+        let cold = md
+            .lines()
+            .find(|l| l.trim_start().starts_with("- cold:"))
+            .unwrap();
+        assert!(
+            cold.contains("train: from scratch") && (round == 0) != cold.contains("cached"),
+            "round {round}: {cold}"
+        );
+    }
+}

@@ -483,15 +483,16 @@ mod tests {
     fn the_encoder_writes_the_bytes_arrow_writer_writes() {
         use arrow::array::{Float32Array, ListArray};
         use arrow::datatypes::{Float32Type, UInt8Type};
-        let lists = |n: usize, seed: u32| {
-            ListArray::from_iter_primitive::<UInt8Type, _, _>((0..n).map(|i| {
-                Some((0..(i + seed as usize) % 5).map(move |j| Some((i * 7 + j) as u8)))
-            }))
-        };
+        let lists =
+            |n: usize, seed: u32| {
+                ListArray::from_iter_primitive::<UInt8Type, _, _>((0..n).map(|i| {
+                    Some((0..(i + seed as usize) % 5).map(move |j| Some((i * 7 + j) as u8)))
+                }))
+            };
         let floats = |n: usize, seed: u32| {
-            ListArray::from_iter_primitive::<Float32Type, _, _>(
-                (0..n).map(|i| Some((0..i % 3).map(move |j| Some(i as f32 * 0.5 - j as f32 + seed as f32)))),
-            )
+            ListArray::from_iter_primitive::<Float32Type, _, _>((0..n).map(|i| {
+                Some((0..i % 3).map(move |j| Some(i as f32 * 0.5 - j as f32 + seed as f32)))
+            }))
         };
         let schema = Arc::new(Schema::new(vec![
             Field::new("n", DataType::UInt32, false),
@@ -504,20 +505,29 @@ mod tests {
             RecordBatch::try_new(
                 schema.clone(),
                 vec![
-                    Arc::new(UInt32Array::from_iter_values((0..n as u32).map(|i| i * seed))),
-                    Arc::new(Float32Array::from_iter_values((0..n).map(|i| i as f32 / 3.0))),
+                    Arc::new(UInt32Array::from_iter_values(
+                        (0..n as u32).map(|i| i * seed),
+                    )),
+                    Arc::new(Float32Array::from_iter_values(
+                        (0..n).map(|i| i as f32 / 3.0),
+                    )),
                     Arc::new(lists(n, seed)),
                     Arc::new(floats(n, seed)),
-                    Arc::new(BinaryArray::from_iter_values((0..n).map(|i| vec![i as u8; i % 9]))),
+                    Arc::new(BinaryArray::from_iter_values(
+                        (0..n).map(|i| vec![i as u8; i % 9]),
+                    )),
                 ],
             )
             .unwrap()
         };
         let batches = [batch(1000, 1), batch(1, 2), batch(0, 3), batch(5000, 4)];
         let mut ours = TableEncoder::new(Vec::new(), schema.clone()).unwrap();
-        let mut theirs =
-            ArrowWriter::try_new(Vec::new(), schema.clone(), Some(properties(&schema).unwrap()))
-                .unwrap();
+        let mut theirs = ArrowWriter::try_new(
+            Vec::new(),
+            schema.clone(),
+            Some(properties(&schema).unwrap()),
+        )
+        .unwrap();
         for b in &batches {
             ours.write(b).unwrap();
             theirs.write(b).unwrap();

@@ -29,7 +29,6 @@
 //! run records (`records`), hash memos (`memo`), file helpers (`files`) and [`StoreError`].
 
 mod codec;
-mod splice;
 mod entry;
 mod error;
 mod files;
@@ -39,6 +38,7 @@ mod memo;
 mod pending;
 mod pipelines;
 mod records;
+mod splice;
 
 pub use codec::{read_parquet, write_parquet, CodecError, StoredTable};
 pub use entry::{Entry, InputInfo, Manifest};

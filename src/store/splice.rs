@@ -10,7 +10,9 @@ use parquet::{
     arrow::arrow_writer::compute_leaves,
     column::writer::ColumnCloseResult,
     errors::ParquetError,
-    file::metadata::{PageIndexPolicy, ParquetMetaData, ParquetMetaDataOptions, ParquetMetaDataReader},
+    file::metadata::{
+        PageIndexPolicy, ParquetMetaData, ParquetMetaDataOptions, ParquetMetaDataReader,
+    },
 };
 
 use super::codec::{CodecError, Positional, StoredTable, TableEncoder};
@@ -147,12 +149,13 @@ mod tests {
     /// and bytes; each row large enough to be a row group of its own.
     fn images(n: u32, seed: u32) -> RecordBatch {
         let px = 70_000usize;
-        let ids = ListArray::from_iter_primitive::<UInt32Type, _, _>((0..n).map(|i| {
-            Some((0..px).map(move |j| Some((j as u32 * 31 + i * seed) % 500)))
-        }));
-        let depth = ListArray::from_iter_primitive::<Float32Type, _, _>((0..n).map(|i| {
-            Some((0..px).map(move |j| Some((j as f32 * 0.01 + i as f32) * seed as f32)))
-        }));
+        let ids = ListArray::from_iter_primitive::<UInt32Type, _, _>(
+            (0..n).map(|i| Some((0..px).map(move |j| Some((j as u32 * 31 + i * seed) % 500)))),
+        );
+        let depth =
+            ListArray::from_iter_primitive::<Float32Type, _, _>((0..n).map(|i| {
+                Some((0..px).map(move |j| Some((j as f32 * 0.01 + i as f32) * seed as f32)))
+            }));
         let schema = Arc::new(Schema::new(vec![
             Field::new("frame", DataType::UInt32, false),
             Field::new("ids", ids.data_type().clone(), false),
@@ -190,7 +193,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (old, other) = (images(5, 3), images(5, 7));
         let t = stored(dir.path(), "old.parquet", &old);
-        assert_eq!((0..5).map(|r| t.group_alone(r)).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
+        assert_eq!(
+            (0..5).map(|r| t.group_alone(r)).collect::<Vec<_>>(),
+            (0..5).map(Some).collect::<Vec<_>>()
+        );
         // Row 1 kept, row 3 with other ids, row 2 of the other table, row 4 with other depth
         // and score.
         let ids = other.column(1).slice(3, 1);
@@ -256,7 +262,11 @@ mod tests {
             .to_string();
         assert!(e.contains("`score` replaced by 2 values"), "{e}");
         // A table of small rows holds several rows per group: none is alone.
-        let small = stored(dir.path(), "small.parquet", &old.slice(0, 3).project(&[0, 3]).unwrap());
+        let small = stored(
+            dir.path(),
+            "small.parquet",
+            &old.slice(0, 3).project(&[0, 3]).unwrap(),
+        );
         assert_eq!(small.num_rows(), 3);
         assert_eq!(small.group_alone(1), None);
         assert_eq!(t.group_alone(3), None);

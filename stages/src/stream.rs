@@ -236,7 +236,12 @@ pub trait TableSink: Send {
     /// Appends row `row` of `from` (a table of this one's schema) with the columns of
     /// `replaced` in place of its own, as its own piece. The runner copies the row's other
     /// columns as they are stored, without decoding them; this default decodes the row.
-    fn write_from(&mut self, from: &Table, row: usize, replaced: &[(&str, ArrayRef)]) -> Result<()> {
+    fn write_from(
+        &mut self,
+        from: &Table,
+        row: usize,
+        replaced: &[(&str, ArrayRef)],
+    ) -> Result<()> {
         self.write(&from.row_with(row, replaced)?)
     }
     /// Ends the table.

@@ -12,7 +12,9 @@ use crate::geometry::{
 };
 use crate::intervals::{plan_image, plan_row, ImagePlan, IntersectParams};
 use crate::kinds::edited::Edited;
-use crate::stage::{Changed, Inputs, Previous, Progress, Result, StageError, Table, Tables, Updated};
+use crate::stage::{
+    Changed, Inputs, Previous, Progress, Result, StageError, Table, Tables, Updated,
+};
 use crate::tables;
 use rayon::prelude::*;
 
