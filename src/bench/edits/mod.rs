@@ -78,12 +78,12 @@ fn override_of(key: &str, value: Yaml) -> Override {
 /// How a run of the bench computes what is stale.
 #[derive(Clone, Copy, PartialEq)]
 enum Mode {
-    /// As `pipe run` (the run before an edit: cached entries are taken as they are).
-    Plain,
     /// Updating wherever a stage can, every stage computed now (even where the update or the
     /// result from scratch is cached).
     Update,
-    /// As `pipe run --cold`.
+    /// As `pipe run --cold`: the edit from scratch, and the run before it (cached entries as
+    /// they are, never an update of the last run: the scene before an addition is a scene a
+    /// user ran, not one derived from the previous case's).
     Cold,
 }
 
@@ -107,7 +107,6 @@ fn run_once(
         cmd.arg("--set").arg(&o.arg);
     }
     match mode {
-        Mode::Plain => {}
         Mode::Update => {
             // Computed now, as an update, even where an earlier bench left the entry cached:
             // the update's time is measured, never taken from a record.
@@ -232,14 +231,14 @@ pub fn run(opts: &EditsOptions) -> Result<Vec<EditRow>, BenchError> {
                 file,
                 with(&Yaml::Sequence(vec![])),
                 scene_stage,
-                Mode::Plain,
+                Mode::Cold,
             )?;
             for case in &s.edits {
                 eprintln!(
                     "bench edits: {} seed {seed_name}: {}",
                     scene.name, case.name
                 );
-                let (before, _) = run_once(opts, file, with(&case.before), &s.until, Mode::Plain)?;
+                let (before, _) = run_once(opts, file, with(&case.before), &s.until, Mode::Cold)?;
                 let (update, wall_u) =
                     run_once(opts, file, with(&case.edits), &s.until, Mode::Update)?;
                 let (cold, wall_c) = run_once(opts, file, with(&case.edits), &s.until, Mode::Cold)?;
