@@ -139,6 +139,10 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
         manifest(&ws, &ws.stage_key("scene"))["output_digest"],
         after["output_digest"]
     );
+    // Forced after that run from scratch: from scratch again (there is nothing to update).
+    ws.run_ok(&["--set", EDIT, "--force", "rays"]);
+    assert_eq!(last(&ws, "rays").0, Outcome::Ran);
+    assert_eq!(ws.stage_key("rays"), cold);
 
     // A removal renumbers the ids after it in every image's plan (rows the update copies with
     // their `prim` column replaced): still the bytes of a run from scratch.
