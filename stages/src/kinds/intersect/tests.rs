@@ -311,12 +311,31 @@ fn street_from_six_places() -> (Vec<Primitive>, Tables) {
     )
 }
 
+/// The update of `old_out` (planned from scene `before`) after an edit of the primitives that
+/// gives scene `after`.
+fn update(p: &IntersectParams, before: &Tables, old_out: &RecordBatch, after: Tables) -> Updated {
+    use crate::stage::{Changed, Previous};
+    let changed = Changed::from([("scene".to_string(), ["primitives".to_string()].into())]);
+    let outputs = TableSet::from(Tables::from([(
+        "ray_intervals".to_string(),
+        old_out.clone(),
+    )]));
+    let inputs = TableSet::from(before.clone());
+    let previous = Previous {
+        outputs: &outputs,
+        inputs: [("scene".to_string(), &inputs)].into(),
+        changed: &changed,
+        lineage: &Default::default(),
+    };
+    let mem = MemoryInputs::new([("scene", after)]);
+    TypedStage::update(&Intersect, p, &mem.inputs(), &previous, &NoProgress).unwrap()
+}
+
 /// Brute force against the cold run: after each kind of edit (moved, relabelled, removed
 /// with the ids after it shifting, added), the update writes the very rows a run from scratch
 /// writes, and intersects again only the images that can see the edit.
 #[test]
 fn an_update_after_an_edit_equals_a_run_from_scratch() {
-    use crate::stage::{Changed, Previous};
     let (prims, before) = street_from_six_places();
     let p = IntersectParams::default();
     let old_out = run(&p, &before).unwrap();
@@ -362,22 +381,7 @@ fn an_update_after_an_edit_equals_a_run_from_scratch() {
         let mut after = before.clone();
         after.insert("primitives".into(), primitives_to_table(&edited).unwrap());
         let cold = run(&p, &after).unwrap();
-        let changed = Changed::from([("scene".to_string(), ["primitives".to_string()].into())]);
-        let (outputs, inputs) = (
-            TableSet::from(Tables::from([(
-                "ray_intervals".to_string(),
-                old_out.clone(),
-            )])),
-            TableSet::from(before.clone()),
-        );
-        let previous = Previous {
-            outputs: &outputs,
-            inputs: [("scene".to_string(), &inputs)].into(),
-            changed: &changed,
-            lineage: &Default::default(),
-        };
-        let mem = MemoryInputs::new([("scene", after)]);
-        let u = TypedStage::update(&Intersect, &p, &mem.inputs(), &previous, &NoProgress).unwrap();
+        let u = update(&p, &before, &old_out, after);
         assert_eq!(u.tables["ray_intervals"], cold, "{what}");
         let redone: usize = u.redone.split(' ').next().unwrap().parse().unwrap();
         assert!((1..6).contains(&redone), "{what}: {}", u.redone);
@@ -391,7 +395,6 @@ fn an_update_after_an_edit_equals_a_run_from_scratch() {
 /// renumbered, and must trace again exactly the pixels that need it.
 #[test]
 fn a_reordered_table_keeps_tied_entries_in_trace_order() {
-    use crate::stage::{Changed, Previous};
     let before = scene(0);
     let mut prims = geometry::primitives_from_table(&before["primitives"]).unwrap();
     for (size, label) in [(3.0, labels::ROAD), (4.0, labels::BUILDING)] {
@@ -426,20 +429,7 @@ fn a_reordered_table_keeps_tied_entries_in_trace_order() {
     ] {
         let after = table(&edited);
         let cold = run(&p, &after).unwrap();
-        let changed = Changed::from([("scene".to_string(), ["primitives".to_string()].into())]);
-        let outputs = TableSet::from(Tables::from([(
-            "ray_intervals".to_string(),
-            old_out.clone(),
-        )]));
-        let inputs = TableSet::from(old_scene.clone());
-        let previous = Previous {
-            outputs: &outputs,
-            inputs: [("scene".to_string(), &inputs)].into(),
-            changed: &changed,
-            lineage: &Default::default(),
-        };
-        let mem = MemoryInputs::new([("scene", after)]);
-        let u = TypedStage::update(&Intersect, &p, &mem.inputs(), &previous, &NoProgress).unwrap();
+        let u = update(&p, &old_scene, &old_out, after);
         assert_eq!(u.tables["ray_intervals"], cold, "{what}");
         // The order changed: every pixel's ids differ from the previous ones.
         assert_ne!(u.tables["ray_intervals"], old_out, "{what}");
