@@ -8,7 +8,7 @@ mod common;
 use std::{collections::BTreeSet, fs, path::Path};
 
 use arrow::array::{Array, Float64Array, StringArray, UInt64Array};
-use common::{Workspace, TINY_PIPELINE};
+use common::{Workspace, EDIT_PIPELINE, TINY_PIPELINE};
 use pipe::runner::{Outcome, RunReport};
 
 fn fixture() -> String {
@@ -178,25 +178,7 @@ fn bad_suites_are_usage_errors_naming_the_file_and_key() {
 /// never a record of the first bench's) while the runs from scratch are found cached.
 #[test]
 fn an_edits_suite_measures_every_update_afresh() {
-    const PIPELINE: &str = "
-stages:
-  scene:
-    uses: synthetic_scene
-    params: {frames: 4, scale: 0.0625}
-  rays:
-    uses: intersect
-    inputs: {scene: scene}
-  train:
-    uses: train
-    inputs: {scene: scene, rays: rays}
-    params:
-      schedule: {iterations: 30, rays_per_batch: 256}
-      update: {iterations: 10}
-  render:
-    uses: render
-    inputs: {scene: scene, rays: rays, train: train}
-";
-    let ws = Workspace::new(PIPELINE);
+    let ws = Workspace::new(EDIT_PIPELINE);
     fs::write(
         ws.dir().join("edits.yaml"),
         "name: edits

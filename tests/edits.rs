@@ -7,7 +7,7 @@ mod common;
 
 use std::fs;
 
-use common::Workspace;
+use common::{Workspace, EDIT_PIPELINE};
 use pipe::runner::{Outcome, RunReport};
 
 const PIPELINE: &str = "
@@ -240,24 +240,6 @@ fn an_edited_bboxes_file_updates_rays() {
 /// other params trains from scratch.
 #[test]
 fn an_edit_trains_on_from_the_previous_weights_and_renders_only_what_it_changes() {
-    const TRAIN: &str = "
-stages:
-  scene:
-    uses: synthetic_scene
-    params: {frames: 4, scale: 0.0625}
-  rays:
-    uses: intersect
-    inputs: {scene: scene}
-  train:
-    uses: train
-    inputs: {scene: scene, rays: rays}
-    params:
-      schedule: {iterations: 60, rays_per_batch: 256}
-      update: {iterations: 20}
-  render:
-    uses: render
-    inputs: {scene: scene, rays: rays, train: train}
-";
     // Car 93 of the street becomes a caravan (a class the street has).
     const RELABEL: &str = "scene.edits=[{primitive: 93, class: caravan, instance: 5}]";
     let log_rows = |ws: &Workspace| {
@@ -276,7 +258,7 @@ stages:
             })
             .unwrap()
     };
-    let ws = Workspace::new(TRAIN);
+    let ws = Workspace::new(EDIT_PIPELINE);
     ws.run_ok(&[]);
     let parent = ws.stage_key("train");
     assert_eq!(log_rows(&ws), 60);
@@ -314,7 +296,7 @@ stages:
     let render_key = ws.stage_key("render");
     let render_digest = manifest(&ws, &render_key)["output_digest"].clone();
 
-    let other = Workspace::new(TRAIN);
+    let other = Workspace::new(EDIT_PIPELINE);
     other.run_ok(&[]);
     other.run_ok(&["--set", RELABEL]);
     assert_eq!(other.stage_key("train"), updated);

@@ -15,6 +15,26 @@ pub use pipe::runner::Outcome;
 pub const PIPE: &str = env!("CARGO_BIN_EXE_pipe");
 
 /// The whole pipeline on a scene small enough for tests (6 frames of 88x23, 40 iterations).
+/// The tiny street up to `render`, trained briefly, with a short update after an edit.
+pub const EDIT_PIPELINE: &str = "
+stages:
+  scene:
+    uses: synthetic_scene
+    params: {frames: 4, scale: 0.0625}
+  rays:
+    uses: intersect
+    inputs: {scene: scene}
+  train:
+    uses: train
+    inputs: {scene: scene, rays: rays}
+    params:
+      schedule: {iterations: 60, rays_per_batch: 256}
+      update: {iterations: 20}
+  render:
+    uses: render
+    inputs: {scene: scene, rays: rays, train: train}
+";
+
 pub const TINY_PIPELINE: &str = "
 stages:
   scene:
