@@ -55,9 +55,19 @@ fn random_batch(rays: usize, seed: u64) -> RayBatch {
     }
 }
 
-/// The fused CPU path on the default grid field, with its phase breakdown.
+/// The fused CPU path on the default grid field, with its phase breakdown: its AVX2 kernels
+/// (`fused`) and, on a CPU that has AVX2, the same kernels for baseline x86-64 (`fused-v1`).
 fn bench_fused(steps: usize) {
-    for rays in [1024, 4096] {
+    let paths: &[bool] = if stages::model::fused::avx2() {
+        &[false, true]
+    } else {
+        &[true]
+    };
+    for (rays, &baseline) in [1024, 4096]
+        .into_iter()
+        .flat_map(|r| paths.iter().map(move |b| (r, b)))
+    {
+        stages::model::fused::baseline_only(baseline);
         let field = FieldConfig::default();
         let config = TrainConfig {
             field: field.clone(),
@@ -90,9 +100,12 @@ fn bench_fused(steps: usize) {
         let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
         println!(
             "{:<8} {:<5} {:>6} {:>10.1} {:>10.1}   (forward {:.1}, backward {:.1}, reduce+adam {:.1} ms)",
-            "fused", "grid", rays, mean, min, phases[0], phases[1], phases[2]
+            if baseline && paths.len() == 2 { "fused-v1" } else { "fused" },
+            "grid",
+            rays, mean, min, phases[0], phases[1], phases[2]
         );
     }
+    stages::model::fused::baseline_only(false);
 }
 
 fn main() {

@@ -129,6 +129,7 @@ impl RaySamples {
 }
 
 /// A fixed-field row is one-hot (a unique class): the first factor of the L_3D point mask u_i.
+#[inline(always)]
 pub fn is_one_hot(p: &[f32]) -> bool {
     let max = p.iter().cloned().fold(0.0f32, f32::max);
     let sum: f32 = p.iter().sum();

@@ -262,6 +262,7 @@ impl<'p> Compositor<'p> {
 }
 
 /// Softmax of `logits` into `out` (max-shifted).
+#[inline(always)]
 pub fn softmax_into(logits: &[f32], out: &mut [f32]) {
     let m = logits.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
     let mut z = 0.0;

@@ -260,6 +260,7 @@ impl FieldSpec {
 
     /// Scene coordinate `x` on `axis` mapped to `[0, 1]` over the AABB (clamped; 0.5 if not
     /// finite).
+    #[inline(always)]
     pub fn unit_coordinate(&self, axis: usize, x: f32) -> f32 {
         let u = (x - self.aabb_min[axis]) / (self.aabb_max[axis] - self.aabb_min[axis]);
         if u.is_finite() {

@@ -69,7 +69,7 @@ pub fn lookup_point(
 }
 
 /// The 8 corner rows and weights of point `p` on level `l` (`level` from [`level_info`]).
-#[inline]
+#[inline(always)]
 pub fn lookup_level(
     config: &GridConfig,
     l: usize,

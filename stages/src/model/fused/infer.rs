@@ -5,6 +5,7 @@ use std::cell::RefCell;
 use rayon::prelude::*;
 
 use super::field::FusedField;
+use super::simd::dispatch;
 use super::work::Work;
 use crate::model::config::FieldSpec;
 use crate::model::field::{Field, FieldSamples, Heads};
@@ -58,15 +59,20 @@ impl FusedField {
             WORK.with_borrow_mut(|w| {
                 let (r0, r1) = (ci * chunk, ((ci + 1) * chunk).min(rays));
                 let m = (r1 - r0) * samples;
-                w.forward_field(
-                    self,
-                    &params,
-                    &positions[r0 * samples * 3..r1 * samples * 3],
-                    &directions[r0 * 3..r1 * 3],
-                    samples,
-                    in_sky.get(r0 * samples..r1 * samples).unwrap_or(&[]),
-                    heads,
-                    false,
+                dispatch(
+                    #[inline(always)]
+                    || {
+                        w.forward_field(
+                            self,
+                            &params,
+                            &positions[r0 * samples * 3..r1 * samples * 3],
+                            &directions[r0 * 3..r1 * 3],
+                            samples,
+                            in_sky.get(r0 * samples..r1 * samples).unwrap_or(&[]),
+                            heads,
+                            false,
+                        )
+                    },
                 );
                 sig.copy_from_slice(&w.sigma[..m]);
                 if let Some(col) = col {

@@ -74,17 +74,20 @@ pub fn gemm(m: usize, k: usize, n: usize, a: View, b: View, beta: f32, c: &mut [
 }
 
 /// Adds `bias` to every row of `y: [rows, bias.len()]`.
+#[inline(always)]
 pub fn add_bias(y: &mut [f32], bias: &[f32]) {
     for row in y.chunks_exact_mut(bias.len()) {
         row.iter_mut().zip(bias).for_each(|(v, b)| *v += b);
     }
 }
 
+#[inline(always)]
 pub fn relu_in_place(y: &mut [f32]) {
     y.iter_mut().for_each(|v| *v = v.max(0.0));
 }
 
 /// `db += column sums of dy: [rows, db.len()]`.
+#[inline(always)]
 pub fn add_column_sums(db: &mut [f32], dy: &[f32]) {
     for row in dy.chunks_exact(db.len()) {
         db.iter_mut().zip(row).for_each(|(g, v)| *g += v);
@@ -102,6 +105,7 @@ pub struct Layer {
 
 /// Forward through `layers` from `x` (rows `n`). `acts[l]` receives layer `l`'s output
 /// (post-ReLU for hidden layers, linear for the last). Buffers only grow.
+#[inline(always)]
 pub fn forward(layers: &[Layer], params: &[&[f32]], n: usize, x: View, acts: &mut [Vec<f32>]) {
     let last = layers.len() - 1;
     for (l, layer) in layers.iter().enumerate() {
@@ -136,6 +140,7 @@ pub fn forward(layers: &[Layer], params: &[&[f32]], n: usize, x: View, acts: &mu
 /// (indexed like the parameters). When `dx` is given it receives the gradient of the first
 /// `dx_cols` columns (default: all) of the input `x` (`[n, dx_cols]`, overwritten).
 #[allow(clippy::too_many_arguments)]
+#[inline(always)]
 pub fn backward(
     layers: &[Layer],
     params: &[&[f32]],

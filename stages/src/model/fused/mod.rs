@@ -24,6 +24,7 @@
 mod field;
 mod infer;
 pub mod mlp;
+mod simd;
 mod step;
 #[cfg(test)]
 mod tests;
@@ -31,4 +32,5 @@ mod train;
 mod work;
 
 pub use field::{supports, FusedField, PARTITIONS};
+pub use simd::{avx2, baseline_only};
 pub use train::{FusedTrainer, EXPOSURE};

@@ -31,6 +31,7 @@ impl Work {
     /// Forward pass, rendering and loss sums of rays `r0..r1`; zeroes this partition's
     /// gradients.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     pub(super) fn forward_step(
         &mut self,
         f: &FusedField,
@@ -182,6 +183,7 @@ impl Work {
     /// L_sky of unlabelled ray `r`: its gate (from the mean colour of its sky samples, which
     /// the colour head has computed) into `state`, `g (1 - S_hat(sky))` into the sums.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn sky_prior_forward(
         &mut self,
         s: &RaySamples,
@@ -221,6 +223,7 @@ impl Work {
     /// the losses ([`Work::backward_rays`]), then the heads and the trunk
     /// ([`Work::backward_field`]).
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     pub(super) fn backward_step(
         &mut self,
         f: &FusedField,
@@ -250,6 +253,7 @@ impl Work {
     /// Gradients of the weighted losses with respect to each sample's density (into the first
     /// column of `dtrunk`), logits (`dz`) and colour (`drgb`).
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn backward_rays(
         &mut self,
         f: &FusedField,
@@ -373,6 +377,7 @@ impl Work {
 
     /// The heads and the trunk backwards, from the per-sample gradients of `backward_rays` to
     /// the parameters and the encoding (`denc`) of `rays` rays of `ns` samples and `c` classes.
+    #[inline(always)]
     fn backward_field(
         &mut self,
         f: &FusedField,

@@ -440,3 +440,33 @@ fn exposure_learns_a_darker_image() {
         );
     }
 }
+
+#[test]
+fn the_avx2_path_gives_the_bytes_of_the_baseline_path() {
+    let batch = varied_batch();
+    let run = |baseline: bool| {
+        super::simd::baseline_only(baseline);
+        let (_, fused) = toy_fields();
+        let mut t = FusedTrainer::new(TrainConfig::default(), fused).unwrap();
+        let losses: Vec<_> = (0..20).map(|_| t.step(&batch).unwrap()).collect();
+        let field = t.into_field();
+        let s = &batch.samples;
+        let heads = Heads {
+            rgb: true,
+            semantics: true,
+        };
+        let maps = field.evaluate(&s.positions, &s.directions, s.samples, &[], heads);
+        super::simd::baseline_only(false);
+        (losses, field.weights, maps.sigma, maps.rgb, maps.logits)
+    };
+    if !super::simd::avx2() {
+        eprintln!("no AVX2 on this CPU: both runs take the baseline path");
+    }
+    let wide = run(false);
+    let baseline = run(true);
+    assert_eq!(wide.0, baseline.0, "losses");
+    assert_eq!(wide.1, baseline.1, "weights after 20 steps");
+    assert_eq!(wide.2, baseline.2, "density");
+    assert_eq!(wide.3, baseline.3, "colour");
+    assert_eq!(wide.4, baseline.4, "logits");
+}

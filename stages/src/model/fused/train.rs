@@ -6,6 +6,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::field::{FusedField, PARTITIONS};
+use super::simd::dispatch;
 use super::step::Scale;
 use super::work::{scatter_grid, Sums, Work};
 use crate::model::batch::RayBatch;
@@ -143,8 +144,13 @@ impl FusedTrainer {
             .par_iter_mut()
             .zip(&bounds)
             .for_each(|(w, &(r0, r1))| {
-                w.forward_step(
-                    field, &params, batch, r0, r1, heads, config, sky, &weights, &gains,
+                dispatch(
+                    #[inline(always)]
+                    || {
+                        w.forward_step(
+                            field, &params, batch, r0, r1, heads, config, sky, &weights, &gains,
+                        )
+                    },
                 );
             });
         let mut sums = Sums::default();
@@ -200,7 +206,10 @@ impl FusedTrainer {
             .par_iter_mut()
             .zip(&bounds)
             .for_each(|(w, &(r0, r1))| {
-                w.backward_step(field, &params, batch, r0, r1, heads, config, sky, &scale);
+                dispatch(
+                    #[inline(always)]
+                    || w.backward_step(field, &params, batch, r0, r1, heads, config, sky, &scale),
+                );
             });
         let mut table = std::mem::take(&mut self.work[0].grads[field.grid]);
         table.resize(field.weights[field.grid].values.len(), 0.0);

@@ -4,6 +4,7 @@ use super::field::FusedField;
 use rayon::prelude::*;
 
 use super::mlp::{self, add_bias, gemm, grow, relu_in_place, View};
+use super::simd::dispatch;
 use crate::model::config::SkyColourInput;
 use crate::model::encoding::{lookup_level, positional_encoding, unit_direction};
 use crate::model::field::Heads;
@@ -76,6 +77,7 @@ pub(super) struct Work {
     pub(super) in_sky: Vec<bool>,
 }
 
+#[inline(always)]
 pub(super) fn softplus(x: f32) -> f32 {
     if x > 20.0 {
         x
@@ -84,6 +86,7 @@ pub(super) fn softplus(x: f32) -> f32 {
     }
 }
 
+#[inline(always)]
 pub(super) fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
@@ -94,6 +97,7 @@ impl Work {
     /// the density's derivative the backward pass needs. `in_sky` (`[n]` or empty): the
     /// samples in their ray's sky interval.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     pub(super) fn forward_field(
         &mut self,
         f: &FusedField,
@@ -258,39 +262,58 @@ pub(super) fn scatter_grid(
 ) {
     let grid = &f.spec.config.grid;
     let feats = grid.features_per_level;
-    let e = grid.levels * feats;
     let rows = grid.table_size();
     table
         .par_chunks_mut(rows * feats)
         .enumerate()
         .for_each(|(l, level)| {
-            level.iter_mut().for_each(|v| *v = 0.0);
-            let base = l * rows;
-            for (w, &(r0, r1)) in work.iter().zip(bounds) {
-                let n = (r1 - r0) * samples;
-                let idx = &w.idx[l * n * 8..(l + 1) * n * 8];
-                let wts = &w.wts[l * n * 8..(l + 1) * n * 8];
-                let denc = w.denc[..n * e].chunks_exact(e);
-                if feats == 2 {
-                    for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
-                        let d = [d[l * 2], d[l * 2 + 1]];
-                        for k in 0..8 {
-                            let row = (idx[k] as usize - base) * 2;
-                            level[row] += wts[k] * d[0];
-                            level[row + 1] += wts[k] * d[1];
-                        }
-                    }
-                } else {
-                    for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
-                        let d = &d[l * feats..(l + 1) * feats];
-                        for k in 0..8 {
-                            let row = (idx[k] as usize - base) * feats;
-                            for ft in 0..feats {
-                                level[row + ft] += wts[k] * d[ft];
-                            }
-                        }
+            dispatch(
+                #[inline(always)]
+                || scatter_level(f, work, bounds, samples, l, level),
+            )
+        });
+}
+
+/// Level `l`'s rows of the grid table's gradient (see [`scatter_grid`]).
+#[inline(always)]
+fn scatter_level(
+    f: &FusedField,
+    work: &[Work],
+    bounds: &[(usize, usize)],
+    samples: usize,
+    l: usize,
+    level: &mut [f32],
+) {
+    let grid = &f.spec.config.grid;
+    let feats = grid.features_per_level;
+    let e = grid.levels * feats;
+    let rows = grid.table_size();
+    level.iter_mut().for_each(|v| *v = 0.0);
+    let base = l * rows;
+    for (w, &(r0, r1)) in work.iter().zip(bounds) {
+        let n = (r1 - r0) * samples;
+        let idx = &w.idx[l * n * 8..(l + 1) * n * 8];
+        let wts = &w.wts[l * n * 8..(l + 1) * n * 8];
+        let denc = w.denc[..n * e].chunks_exact(e);
+        if feats == 2 {
+            for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
+                let d = [d[l * 2], d[l * 2 + 1]];
+                for k in 0..8 {
+                    let row = (idx[k] as usize - base) * 2;
+                    level[row] += wts[k] * d[0];
+                    level[row + 1] += wts[k] * d[1];
+                }
+            }
+        } else {
+            for ((d, idx), wts) in denc.zip(idx.chunks_exact(8)).zip(wts.chunks_exact(8)) {
+                let d = &d[l * feats..(l + 1) * feats];
+                for k in 0..8 {
+                    let row = (idx[k] as usize - base) * feats;
+                    for ft in 0..feats {
+                        level[row + ft] += wts[k] * d[ft];
                     }
                 }
             }
-        });
+        }
+    }
 }
