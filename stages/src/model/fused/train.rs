@@ -226,25 +226,7 @@ impl FusedTrainer {
                 }
             }
         }
-        // Sum the partitions' MLP gradients into the first, in partition order.
-        let (first, rest) = self.work.split_at_mut(1);
-        let rest = &rest[..parts - 1];
-        for (k, g) in first[0].grads.iter_mut().enumerate() {
-            if k == field.grid {
-                continue;
-            }
-            g.par_chunks_mut(1 << 14)
-                .enumerate()
-                .for_each(|(ci, chunk)| {
-                    let (o, len) = (ci << 14, chunk.len());
-                    for w in rest {
-                        chunk
-                            .iter_mut()
-                            .zip(&w.grads[k][o..o + len])
-                            .for_each(|(a, b)| *a += b);
-                    }
-                });
-        }
+        sum_into_first(&mut self.work[..parts], field.grid);
         Ok(values)
     }
 
@@ -404,5 +386,27 @@ impl crate::model::train::Trainer for FusedTrainer {
 
     fn weights(&self) -> Vec<NamedWeight> {
         self.field.weights.clone()
+    }
+}
+
+/// Sums the partitions' MLP gradients into the first partition's, in partition order (the grid's,
+/// slot `grid`, is summed by `scatter_grid`).
+fn sum_into_first(work: &mut [Work], grid: usize) {
+    let (first, rest) = work.split_at_mut(1);
+    for (k, g) in first[0].grads.iter_mut().enumerate() {
+        if k == grid {
+            continue;
+        }
+        g.par_chunks_mut(1 << 14)
+            .enumerate()
+            .for_each(|(ci, chunk)| {
+                let (o, len) = (ci << 14, chunk.len());
+                for w in rest.iter() {
+                    chunk
+                        .iter_mut()
+                        .zip(&w.grads[k][o..o + len])
+                        .for_each(|(a, b)| *a += b);
+                }
+            });
     }
 }
