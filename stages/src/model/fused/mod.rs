@@ -10,7 +10,8 @@
 //!
 //! Files: [`FusedField`] (layout, inference) here; the per-partition buffers and the field's
 //! forward pass in `work`; rendering, losses and the backward pass of one step in `step`; the
-//! trainer (partitions, gradient reduction, clipping, Adam) in `train`; dense layers in [`mlp`].
+//! trainer (partitions, gradient reduction, clipping, Adam) in `train`; dense layers in [`mlp`];
+//! the same kernels compiled for AVX2 and chosen at run time in `simd`.
 //!
 //! Determinism: rays are split into a fixed number of partitions ([`PARTITIONS`], independent
 //! of the thread count); each partition accumulates its own gradients and they are summed in
