@@ -14,7 +14,6 @@ pub use pipe::runner::Outcome;
 
 pub const PIPE: &str = env!("CARGO_BIN_EXE_pipe");
 
-/// The whole pipeline on a scene small enough for tests (6 frames of 88x23, 40 iterations).
 /// The tiny street up to `render`, trained briefly, with a short update after an edit.
 pub const EDIT_PIPELINE: &str = "
 stages:
@@ -35,6 +34,7 @@ stages:
     inputs: {scene: scene, rays: rays, train: train}
 ";
 
+/// The whole pipeline on a scene small enough for tests (6 frames of 88x23, 40 iterations).
 pub const TINY_PIPELINE: &str = "
 stages:
   scene:
