@@ -198,6 +198,16 @@ fn a_changed_pose_or_a_missing_parent_computes_from_scratch_and_says_why() {
         )),
         "{why}"
     );
+
+    // The entry the last run read is gone, but one with the same bytes is cached (a version
+    // bump that wrote the same bytes, then `pipe gc`): that one serves, and rays updates.
+    let record = ws.cache().join("runs/rays.json");
+    let mut rec: serde_json::Value = serde_json::from_slice(&fs::read(&record).unwrap()).unwrap();
+    rec["inputs"]["scene"]["key"] = serde_json::json!("0".repeat(64));
+    fs::write(&record, serde_json::to_vec(&rec).unwrap()).unwrap();
+    ws.run_ok(&["--set", EDIT, "--set", "scene.camera_height_m=1.6"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
 }
 
 /// The edit a team makes by hand: the box moved in the `data_3d_bboxes` XML and saved. The

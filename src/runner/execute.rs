@@ -214,9 +214,20 @@ impl Job {
             return Ok(None);
         };
         let outputs = load_cached(&self.store, &self.loaded, &parent.manifest)?;
+        // Only what the update reads of them: a parent's plan table alone is gigabytes to
+        // verify and megabytes of metadata to hold.
+        let reads = self.p.stages[self.i].kind.parent_inputs();
         let mut inputs = BTreeMap::new();
         for (slot, m) in &parent.inputs {
-            inputs.insert(slot.clone(), load_cached(&self.store, &self.loaded, m)?);
+            let only: Vec<&str> = reads
+                .iter()
+                .filter(|(s, _)| s == slot)
+                .map(|&(_, t)| t)
+                .collect();
+            if !only.is_empty() {
+                let t = load_some(&self.store, &self.loaded, m, Some(&only))?;
+                inputs.insert(slot.clone(), t);
+            }
         }
         Ok(Some((outputs, inputs, parent)))
     }
@@ -263,8 +274,18 @@ impl Job {
 /// The tables of entry `m`, read on demand; hashed first unless this run wrote or verified the
 /// entry already.
 fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<TableSet, StageFailure> {
+    load_some(store, loaded, m, None)
+}
+
+/// [`load_cached`] for the tables `only` names (all with `None`).
+fn load_some(
+    store: &Store,
+    loaded: &Loaded,
+    m: &Manifest,
+    only: Option<&[&str]>,
+) -> Result<TableSet, StageFailure> {
     let trusted = loaded.lock().unwrap().contains(&m.key);
-    let t = match store.open_tables(m, trusted) {
+    let t = match store.open_some_tables(m, trusted, only) {
         Err(StoreError::Corrupt(why)) => {
             return Err(StageFailure::InputCorrupt {
                 stage: m.stage.clone(),
@@ -275,7 +296,10 @@ fn load_cached(store: &Store, loaded: &Loaded, m: &Manifest) -> Result<TableSet,
         }
         other => other?,
     };
-    loaded.lock().unwrap().insert(m.key.clone());
+    // A part verified does not vouch for the rest.
+    if only.is_none() {
+        loaded.lock().unwrap().insert(m.key.clone());
+    }
     Ok(t)
 }
 

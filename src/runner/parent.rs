@@ -163,7 +163,9 @@ pub fn find_parent(
         })?;
         let old = match store.check(before, false) {
             Entry::Valid(m) => m,
-            _ => return Err(gone(&format!("the input `{slot}` of its last run"))),
+            // Gone (collected, say), but an entry with the same bytes serves as well.
+            _ => same_bytes(store, &rec.inputs[slot].digest)
+                .ok_or_else(|| gone(&format!("the input `{slot}` of its last run")))?,
         };
         let new = current(slot).ok_or_else(|| Some(format!("input `{slot}` has no entry")))?;
         debug_assert_eq!(Some(&new.key), info.key.as_ref());
@@ -214,6 +216,19 @@ pub fn find_parent(
         lineage,
         edited,
     }))
+}
+
+/// A valid entry whose outputs have digest `digest`, if the cache holds one.
+fn same_bytes(store: &Store, digest: &str) -> Option<Box<Manifest>> {
+    store.keys().into_iter().find_map(|k| {
+        let m = store
+            .manifest_of(&k)
+            .filter(|m| m.output_digest == digest)?;
+        match store.check(&m.key, false) {
+            Entry::Valid(m) => Some(m),
+            _ => None,
+        }
+    })
 }
 
 /// Whether entry `m` was updated, directly or through a few updates in between, from the entry

@@ -180,7 +180,8 @@ impl Previous<'_> {
             .and_then(|t| t.get(table))
             .ok_or_else(|| {
                 StageError::Input(format!(
-                    "the previous run has no input table `{slot}.{table}`"
+                    "the previous run has no input table `{slot}.{table}` (or the kind's \
+                     PARENT_INPUTS does not name it)"
                 ))
             })
     }
@@ -250,6 +251,9 @@ pub trait Stage: Send + Sync {
     /// Top-level params a parent may differ in, which its update takes up
     /// ([`TypedStage::EDITABLE`]): part of every key, unlike update-only params.
     fn editable_params(&self) -> &'static [&'static str];
+    /// The tables of its parent's inputs that [`Stage::update`] reads, as (slot, table)
+    /// ([`TypedStage::PARENT_INPUTS`]): the runner opens and verifies only these.
+    fn parent_inputs(&self) -> &'static [(&'static str, &'static str)];
     /// Whether [`Stage::update`] can start from a previous run whose inputs differ from the
     /// current ones in `changed` and relate to them as `lineage` says; if not, why (the runner
     /// then computes from scratch).
@@ -296,6 +300,10 @@ pub trait TypedStage: Send + Sync {
     /// Top-level params whose change [`TypedStage::update`] takes up from a parent that ran with
     /// other values (a source stage's edits of the annotation): a parent may differ in them.
     const EDITABLE: &'static [&'static str] = &[];
+    /// See [`Stage::parent_inputs`]: what an update reads of its parent's inputs through
+    /// [`Previous::input`] (a parent's tables are opened and verified only where read, since
+    /// some are gigabytes).
+    const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[];
 
     /// Semantic checks beyond types (ranges, consistency). Errors name the param.
     fn validate(_params: &Self::Params) -> Result<()> {
@@ -413,6 +421,9 @@ impl<T: TypedStage> Stage for T {
     }
     fn editable_params(&self) -> &'static [&'static str] {
         T::EDITABLE
+    }
+    fn parent_inputs(&self) -> &'static [(&'static str, &'static str)] {
+        T::PARENT_INPUTS
     }
     fn can_update(
         &self,

@@ -32,6 +32,7 @@ impl TypedStage for StereoDepth {
     }];
     const OUTPUTS: &'static [&'static str] = &["stereo_depth"];
     const UPDATES: bool = true;
+    const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[("scene", "scene_info")];
 
     fn validate(p: &StereoParams) -> Result<()> {
         p.validate()

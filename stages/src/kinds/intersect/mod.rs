@@ -30,6 +30,7 @@ impl TypedStage for Intersect {
     }];
     const OUTPUTS: &'static [&'static str] = &["ray_intervals"];
     const UPDATES: bool = true;
+    const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[("scene", "primitives")];
 
     fn validate(p: &IntersectParams) -> Result<()> {
         if !(1..=255).contains(&p.k) {

@@ -56,6 +56,7 @@ impl TypedStage for Render {
     ];
     const OUTPUTS: &'static [&'static str] = &["label_maps"];
     const UPDATES: bool = true;
+    const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[("scene", "primitives")];
 
     fn validate(p: &RenderParams) -> Result<()> {
         if p.chunk == 0 {

@@ -54,7 +54,10 @@ pub(super) fn from_scratch(
         &mut log,
         progress,
     )?;
-    outputs(p, &rays, spec, trainer.weights(), log.table()?)
+    let weights = trainer.weights();
+    // The run's rays, order and optimiser state are done with: the tables are written without them.
+    drop((trainer, order));
+    outputs(p, rays, spec, weights, log.table()?)
 }
 
 /// The field spec of a scene: its classes, and as its box the bounds of its primitives
@@ -91,17 +94,26 @@ pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> Fi
 /// Rays of the selected cameras (empty: every camera) that cross a primitive: the ones
 /// training draws from.
 pub(super) fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
-    rays.images
-        .iter()
-        .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
-        .flat_map(|im| {
+    let used = || {
+        rays.images
+            .iter()
+            .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
+    };
+    // Counted first: tens of millions of ids, and a growing Vec would hold up to twice that.
+    let n = used()
+        .map(|im| im.hits.iter().filter(|&&h| h > 0).count())
+        .sum();
+    let mut out = Vec::with_capacity(n);
+    for im in used() {
+        out.extend(
             im.hits
                 .iter()
                 .enumerate()
                 .filter(|(_, &h)| h > 0)
-                .map(|(p, _)| im.first_ray + p as u32)
-        })
-        .collect()
+                .map(|(p, _)| im.first_ray + p as u32),
+        );
+    }
+    out
 }
 
 /// The scene's training rays, with stereo depth kept where `losses.depth_classes` says.
@@ -128,15 +140,18 @@ pub(super) fn training_rays(p: &TrainParams, inputs: &Inputs) -> Result<ImageRay
 /// The stage's tables: the weights, the model description and the log.
 pub(super) fn outputs(
     p: &TrainParams,
-    rays: &ImageRays,
+    rays: ImageRays,
     spec: FieldSpec,
     weights: Vec<NamedWeight>,
     log: RecordBatch,
 ) -> Result<Tables> {
+    let classes = rays.prims.classes.clone();
+    // Hundreds of MB at full size, not needed to write the tables.
+    drop(rays);
     let info = ModelInfo {
         spec,
         sampling: p.sampling_params(),
-        classes: rays.prims.classes.clone(),
+        classes,
     };
     Ok(Tables::from([
         ("weights".to_string(), weights::weights_table(&weights)?),

@@ -59,6 +59,7 @@ impl TypedStage for Train {
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
     const BUDGET_PARAM: Option<&'static str> = Some("schedule.iterations");
     const UPDATES: bool = true;
+    const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[("scene", "primitives")];
     const UPDATE_ONLY: &'static [&'static str] = &["update"];
     const MOVED: &'static [(&'static str, &'static str)] = params::MOVED;
 

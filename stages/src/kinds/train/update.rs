@@ -59,14 +59,15 @@ pub(super) fn update(
         });
     }
     let changed = Edited::read(previous, inputs)?.extents();
+    // Before the candidates: its passing allocations stay below theirs.
+    let edited = edited_rays(&rays, &p.cameras, &changed);
     let all = candidates(&rays, &p.cameras);
     if all.is_empty() {
         return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
     }
-    let edited = edited_rays(&rays, &p.cameras, &changed, &all);
     let log_before = previous.output("train_log")?.whole()?;
     if edited.is_empty() {
-        let tables = outputs(p, &rays, info.spec, before, log_before.clone())?;
+        let tables = outputs(p, rays, info.spec, before, log_before.clone())?;
         return Ok(Updated {
             tables,
             redone: "no ray can see the edit: the previous weights".into(),
@@ -112,7 +113,9 @@ pub(super) fn update(
     let added = log.table()?;
     let log = concat_batches(&added.schema(), [log_before, &added])
         .map_err(|e| StageError::Failed(format!("appending to the train log: {e}")))?;
-    let tables = outputs(p, &rays, info.spec, trainer.weights(), log)?;
+    let weights = trainer.weights();
+    drop((trainer, edited_order, all_order));
+    let tables = outputs(p, rays, info.spec, weights, log)?;
     Ok(Updated {
         tables,
         redone: format!(
@@ -131,29 +134,31 @@ fn tables_last_iteration(log: &arrow::record_batch::RecordBatch) -> Result<usize
     Ok(it.iter().copied().max().unwrap_or(0) as usize)
 }
 
-/// The training rays (ascending, among `all`) whose pixel ray meets a changed primitive.
+/// The training rays (ascending, among [`candidates`]) whose pixel ray meets a changed
+/// primitive.
 fn edited_rays(
     rays: &crate::sampling::ImageRays,
     cameras: &[u8],
     changed: &[Primitive],
-    all: &[u32],
 ) -> Vec<u32> {
     let mut view = ChangeView::new(changed);
     let mut out = Vec::new();
-    for im in rays
+    let used = rays
         .images
         .iter()
-        .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
-    {
+        .filter(|im| cameras.is_empty() || cameras.contains(&im.camera));
+    for im in used {
         if !view.seen_by(&im.cam, f64::INFINITY) {
             continue;
         }
         out.extend(
             pixels_meeting(&im.cam, changed, f64::INFINITY)
                 .into_iter()
-                .map(|px| im.first_ray + px)
-                .filter(|r| all.binary_search(r).is_ok()),
+                .filter(|&px| im.hits[px as usize] > 0)
+                .map(|px| im.first_ray + px),
         );
     }
+    // Held through the whole update: not the up to twice its length that growing left.
+    out.shrink_to_fit();
     out
 }
