@@ -1,8 +1,9 @@
-//! Arrow codecs of the `cameras` and `primitives` tables (`data_schema/cameras.json`,
-//! `data_schema/primitives.json`). Transforms are stored as row-major 4x4 matrices; reading
+//! Arrow codecs of the `cameras`, `primitives` and `dynamic_boxes` tables (their files in
+//! `data_schema/`). Transforms are stored as row-major 4x4 matrices; reading
 //! checks the bottom row and validates every primitive, naming the row and column on error.
 
 use arrow::{
+    array::ArrayRef,
     datatypes::{Float64Type, UInt32Type, UInt8Type},
     record_batch::RecordBatch,
 };
@@ -61,9 +62,91 @@ fn row_err(table: &str, row: usize, col: &str, msg: impl std::fmt::Display) -> S
 
 /// The primitives table (row index = `id`).
 pub fn primitives_to_table(prims: &[Primitive]) -> Result<RecordBatch> {
+    let mut cols = vec![tables::prim::<UInt32Type>(0..prims.len() as u32)];
+    cols.extend(shape_columns(prims.iter()));
+    tables::build("primitives", cols)
+}
+
+/// Validated primitives from the primitives table; `id` must equal the row index.
+pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
+    const T: &str = "primitives";
+    let ids = tables::get_prim::<UInt32Type>(t, T, "id")?;
+    if let Some(row) = (0..t.num_rows()).find(|&r| ids[r] as usize != r) {
+        return Err(row_err(
+            T,
+            row,
+            "id",
+            format!("id {} is not the row index", ids[row]),
+        ));
+    }
+    shapes_from_columns(t, T)
+}
+
+/// A moving object's box at one frame (KITTI-360's dynamic objects: one box per frame).
+#[derive(Clone, Debug)]
+pub struct DynamicBox {
+    /// Stable over the sequence: label id * 1000 + instance (its value in the instance maps).
+    pub object: u32,
+    pub frame: u32,
+    pub primitive: Primitive,
+}
+
+/// The `dynamic_boxes` table, rows in the order given.
+pub fn dynamic_boxes_to_table(boxes: &[DynamicBox]) -> Result<RecordBatch> {
+    let mut cols = vec![
+        tables::prim::<UInt32Type>(boxes.iter().map(|b| b.object)),
+        tables::prim::<UInt32Type>(boxes.iter().map(|b| b.frame)),
+    ];
+    cols.extend(shape_columns(boxes.iter().map(|b| &b.primitive)));
+    tables::build("dynamic_boxes", cols)
+}
+
+/// Validated boxes of the `dynamic_boxes` table; each row's `object` must be its label and
+/// instance, and an object may hold one box per frame.
+pub fn dynamic_boxes_from_table(t: &RecordBatch) -> Result<Vec<DynamicBox>> {
+    const T: &str = "dynamic_boxes";
+    let objects = tables::get_prim::<UInt32Type>(t, T, "object")?;
+    let frames = tables::get_prim::<UInt32Type>(t, T, "frame")?;
+    let prims = shapes_from_columns(t, T)?;
+    let mut seen = std::collections::BTreeMap::new();
+    let mut out = Vec::with_capacity(prims.len());
+    for (row, primitive) in prims.into_iter().enumerate() {
+        let (object, frame) = (objects[row], frames[row]);
+        let expected =
+            u32::from(primitive.label) * crate::labels::INSTANCE_FACTOR + primitive.instance;
+        if object != expected {
+            return Err(row_err(
+                T,
+                row,
+                "object",
+                format!(
+                    "{object} is not label * 1000 + instance ({} * 1000 + {})",
+                    primitive.label, primitive.instance
+                ),
+            ));
+        }
+        if let Some(first) = seen.insert((object, frame), row) {
+            return Err(row_err(
+                T,
+                row,
+                "frame",
+                format!("object {object} has a box at frame {frame} in row {first} already"),
+            ));
+        }
+        out.push(DynamicBox {
+            object,
+            frame,
+            primitive,
+        });
+    }
+    Ok(out)
+}
+
+/// The columns `kind` to `faces` of a table of primitives (as in `primitives`).
+fn shape_columns<'a>(prims: impl ExactSizeIterator<Item = &'a Primitive> + Clone) -> Vec<ArrayRef> {
     let mut transform = Vec::with_capacity(prims.len() * 16);
     let (mut polygon, mut vertices, mut faces) = (vec![], vec![], vec![]);
-    for p in prims {
+    for p in prims.clone() {
         transform.extend(affine_to_row_major(&p.to_world));
         let (mut pg, mut vs, mut fs) = (vec![], vec![], vec![]);
         match &p.shape {
@@ -78,52 +161,38 @@ pub fn primitives_to_table(prims: &[Primitive]) -> Result<RecordBatch> {
         vertices.push(vs);
         faces.push(fs);
     }
-    tables::build(
-        "primitives",
-        vec![
-            tables::prim::<UInt32Type>(0..prims.len() as u32),
-            tables::strings(prims.iter().map(|p| p.shape.kind())),
-            tables::prim::<UInt8Type>(prims.iter().map(|p| p.label)),
-            tables::prim::<UInt32Type>(prims.iter().map(|p| p.instance)),
-            tables::fixed_list::<Float64Type>(16, transform),
-            tables::list::<Float64Type>(polygon),
-            tables::list::<Float64Type>(vertices),
-            tables::list::<UInt32Type>(faces),
-        ],
-    )
+    vec![
+        tables::strings(prims.clone().map(|p| p.shape.kind())),
+        tables::prim::<UInt8Type>(prims.clone().map(|p| p.label)),
+        tables::prim::<UInt32Type>(prims.map(|p| p.instance)),
+        tables::fixed_list::<Float64Type>(16, transform),
+        tables::list::<Float64Type>(polygon),
+        tables::list::<Float64Type>(vertices),
+        tables::list::<UInt32Type>(faces),
+    ]
 }
 
-/// Validated primitives from the primitives table; `id` must equal the row index.
-pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
-    const T: &str = "primitives";
-    let ids = tables::get_prim::<UInt32Type>(t, T, "id")?;
-    let kinds = tables::get_strings(t, T, "kind")?;
-    let labels = tables::get_prim::<UInt8Type>(t, T, "label")?;
-    let instances = tables::get_prim::<UInt32Type>(t, T, "instance")?;
-    let (transform, n) = tables::get_fixed_list::<Float64Type>(t, T, "transform")?;
+/// Validated primitives of the columns `kind` to `faces` of `table`, one per row.
+fn shapes_from_columns(t: &RecordBatch, table: &str) -> Result<Vec<Primitive>> {
+    let kinds = tables::get_strings(t, table, "kind")?;
+    let labels = tables::get_prim::<UInt8Type>(t, table, "label")?;
+    let instances = tables::get_prim::<UInt32Type>(t, table, "instance")?;
+    let (transform, n) = tables::get_fixed_list::<Float64Type>(t, table, "transform")?;
     if n != 16 {
         return Err(row_err(
-            T,
+            table,
             0,
             "transform",
             format!("expected 16 values per row, found {n}"),
         ));
     }
-    let polygon = tables::get_list::<Float64Type>(t, T, "polygon")?;
-    let vertices = tables::get_list::<Float64Type>(t, T, "vertices")?;
-    let faces = tables::get_list::<UInt32Type>(t, T, "faces")?;
+    let polygon = tables::get_list::<Float64Type>(t, table, "polygon")?;
+    let vertices = tables::get_list::<Float64Type>(t, table, "vertices")?;
+    let faces = tables::get_list::<UInt32Type>(t, table, "faces")?;
     let mut out = Vec::with_capacity(t.num_rows());
     for row in 0..t.num_rows() {
-        if ids[row] as usize != row {
-            return Err(row_err(
-                T,
-                row,
-                "id",
-                format!("id {} is not the row index", ids[row]),
-            ));
-        }
         let m = affine_from_row_major(&transform[row * 16..row * 16 + 16])
-            .map_err(|e| row_err(T, row, "transform", e))?;
+            .map_err(|e| row_err(table, row, "transform", e))?;
         let (kind, col) = (kinds.value(row), "kind");
         let shape = match kind {
             "cuboid" => Shape::Cuboid,
@@ -131,7 +200,7 @@ pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
             "extruded" => {
                 let flat = polygon.row(row);
                 if flat.len() % 2 != 0 {
-                    return Err(row_err(T, row, "polygon", "odd number of coordinates"));
+                    return Err(row_err(table, row, "polygon", "odd number of coordinates"));
                 }
                 Shape::Extruded {
                     polygon: flat.chunks_exact(2).map(|c| [c[0], c[1]]).collect(),
@@ -140,10 +209,20 @@ pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
             "mesh" => {
                 let (vs, fs) = (vertices.row(row), faces.row(row));
                 if vs.len() % 3 != 0 {
-                    return Err(row_err(T, row, "vertices", "length is not a multiple of 3"));
+                    return Err(row_err(
+                        table,
+                        row,
+                        "vertices",
+                        "length is not a multiple of 3",
+                    ));
                 }
                 if fs.len() % 3 != 0 {
-                    return Err(row_err(T, row, "faces", "length is not a multiple of 3"));
+                    return Err(row_err(
+                        table,
+                        row,
+                        "faces",
+                        "length is not a multiple of 3",
+                    ));
                 }
                 Shape::Mesh {
                     vertices: vs.chunks_exact(3).map(DVec3::from_slice).collect(),
@@ -152,7 +231,7 @@ pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
             }
             other => {
                 return Err(row_err(
-                    T,
+                    table,
                     row,
                     col,
                     format!(
@@ -174,7 +253,7 @@ pub fn primitives_from_table(t: &RecordBatch) -> Result<Vec<Primitive>> {
             } else {
                 bad_col
             };
-            row_err(T, row, col, e)
+            row_err(table, row, col, e)
         })?;
         out.push(p);
     }

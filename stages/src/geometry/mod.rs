@@ -38,7 +38,8 @@ pub use error::GeometryError;
 pub use fields::{fixed_instance, fixed_semantic, scene_things};
 pub use glam::{DAffine3, DMat3, DVec3};
 pub use io::{
-    cameras_from_table, cameras_to_table, primitives_from_table, primitives_to_table, CameraRow,
+    cameras_from_table, cameras_to_table, dynamic_boxes_from_table, dynamic_boxes_to_table,
+    primitives_from_table, primitives_to_table, CameraRow, DynamicBox,
 };
 pub use lens::{Lens, Mei, FISHEYE_HALF_ANGLE_DEG};
 pub use primitive::{Primitive, Shape};

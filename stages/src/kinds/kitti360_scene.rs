@@ -13,7 +13,7 @@ pub struct Kitti360Scene;
 impl TypedStage for Kitti360Scene {
     type Params = Kitti360Params;
     const KIND: &'static str = "kitti360_scene";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const DESCRIPTION: &'static str =
         "a KITTI-360 sequence (or data in its layout): posed stereo images, 3D bounding \
          primitives near the chosen frames, pseudo labels, optional stereo depth, GT and LiDAR";
@@ -22,6 +22,7 @@ impl TypedStage for Kitti360Scene {
         "scene_info",
         "cameras",
         "primitives",
+        "dynamic_boxes",
         "images",
         "pseudo_labels",
         "stereo_depth",

@@ -47,8 +47,8 @@ use glam::{DAffine3, DMat3, DVec3};
 use super::io::{image_keys, scene_info, table, write_bytes, write_png, write_text, SceneInfo};
 use super::kitti360::{self, Kitti360Params};
 use crate::geometry::{
-    cameras_from_table, io::affine_to_row_major, primitives_from_table, Camera, CameraRow, Lens,
-    Primitive, Shape,
+    cameras_from_table, dynamic_boxes_from_table, io::affine_to_row_major, primitives_from_table,
+    Camera, CameraRow, DynamicBox, Lens, Primitive, Shape,
 };
 use crate::{labels, pngio};
 use crate::{tables, Result, StageError, Tables};
@@ -96,6 +96,11 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     let info = scene_info(t)?;
     let cams = cameras_from_table(table(t, "cameras")?)?;
     let prims = primitives_from_table(table(t, "primitives")?)?;
+    // Moving objects: a scene kind without them has no such table.
+    let moving = match t.get("dynamic_boxes") {
+        Some(b) => dynamic_boxes_from_table(b)?,
+        None => Vec::new(),
+    };
     // The loader's default patterns, resolved in `dir`.
     let at = Kitti360Params {
         root: dir.display().to_string(),
@@ -107,7 +112,7 @@ pub fn write(t: &Tables, dir: &Path) -> Result<Vec<PathBuf>> {
     write_perspective(&at, &info, &cams, &mut files)?;
     let rect_to_velo = rect_to_velo();
     write_lidar_calibration(&at, &rect_to_velo, &mut files)?;
-    write_bboxes(&at, &info, &cams, &prims, &mut files)?;
+    write_bboxes(&at, &info, &cams, (&prims, &moving), &mut files)?;
     write_fisheye_calibration(&at, &info, &cams, &mut files)?;
     write_images(&at, t, &mut files)?;
     write_gt(&at, t, &mut files)?;
@@ -283,7 +288,7 @@ fn write_bboxes(
     at: &Kitti360Params,
     info: &SceneInfo,
     cams: &[CameraRow],
-    prims: &[Primitive],
+    (prims, moving): (&[Primitive], &[DynamicBox]),
     files: &mut Vec<PathBuf>,
 ) -> Result<()> {
     let frames: Vec<u32> = cams.iter().map(|r| r.frame).collect();
@@ -291,7 +296,7 @@ fn write_bboxes(
         frames.iter().copied().min().unwrap_or(0),
         frames.iter().copied().max().unwrap_or(0),
     );
-    let xml = bboxes_xml(prims, info.origin, first, last)?;
+    let xml = bboxes_xml(prims, moving, info.origin, first, last)?;
     write_text(at.path(&at.bboxes, 0, 0), &xml, files)
 }
 
@@ -673,43 +678,99 @@ pub fn xml_instance_ids(prims: &[Primitive]) -> Result<Vec<u32>> {
         .collect()
 }
 
-/// The `data_3d_bboxes` XML of the primitives (world frame = scene + `origin`).
-pub fn bboxes_xml(prims: &[Primitive], origin: DVec3, first: u32, last: u32) -> Result<String> {
+/// The `data_3d_bboxes` XML of the primitives, valid over frames `first..=last`, and of the
+/// moving objects' boxes, one object element per box with its frame as `timestamp` and the
+/// object's first and last frame as `start_frame` and `end_frame` (world frame = scene +
+/// `origin`).
+pub fn bboxes_xml(
+    prims: &[Primitive],
+    moving: &[DynamicBox],
+    origin: DVec3,
+    first: u32,
+    last: u32,
+) -> Result<String> {
     let mut s = String::from("<?xml version=\"1.0\"?>\n<opencv_storage>\n");
     let instance_ids = xml_instance_ids(prims)?;
     for (i, p) in prims.iter().enumerate() {
-        let l = labels::by_id(p.label)
-            .filter(|l| l.kitti_id >= 0)
-            .ok_or_else(|| {
-                StageError::Input(format!("primitive {i}: label {} has no kittiId", p.label))
-            })?;
-        let mut m = affine_to_row_major(&p.to_world);
-        m[3] += origin.x;
-        m[7] += origin.y;
-        m[11] += origin.z;
-        let (v, f) = local_mesh(&p.shape);
-        let _ = writeln!(s, "<object{}>", i + 1);
-        matrix(&mut s, "transform", 4, 4, "f", &m.map(num));
-        let vd: Vec<String> = v.iter().flat_map(|q| [q.x, q.y, q.z]).map(num).collect();
-        matrix(&mut s, "vertices", v.len(), 3, "f", &vd);
-        let dt = if v.len() <= 256 { "u" } else { "i" };
-        let fd: Vec<String> = f.iter().flatten().map(|x| x.to_string()).collect();
-        matrix(&mut s, "faces", f.len(), 3, dt, &fd);
-        let _ = writeln!(s, "  <semanticId>{}</semanticId>", l.kitti_id);
-        let _ = writeln!(s, "  <instanceId>{}</instanceId>", instance_ids[i]);
-        let _ = writeln!(
-            s,
-            "  <start_frame>{first}</start_frame>\n  <end_frame>{last}</end_frame>"
-        );
-        let _ = writeln!(s, "  <timestamp>-1</timestamp>\n  <index>{i}</index>");
-        let _ = writeln!(
-            s,
-            "  <label>{}</label>\n  <category>{}</category>",
-            l.name,
-            category(p.label)
-        );
-        let _ = writeln!(s, "</object{}>", i + 1);
+        let object = XmlBox {
+            instance: instance_ids[i],
+            span: (first, last),
+            timestamp: -1,
+        };
+        write_object(&mut s, i, p, object, origin)
+            .map_err(|e| StageError::Input(format!("primitive {i}: {e}")))?;
+    }
+    let mut span = std::collections::BTreeMap::new();
+    for b in moving {
+        let e = span.entry(b.object).or_insert((b.frame, b.frame));
+        *e = (e.0.min(b.frame), e.1.max(b.frame));
+    }
+    for (k, b) in moving.iter().enumerate() {
+        let object = XmlBox {
+            instance: b.primitive.instance,
+            span: span[&b.object],
+            timestamp: i64::from(b.frame),
+        };
+        write_object(&mut s, prims.len() + k, &b.primitive, object, origin).map_err(|e| {
+            StageError::Input(format!(
+                "moving object {} at frame {}: {e}",
+                b.object, b.frame
+            ))
+        })?;
     }
     s.push_str("</opencv_storage>\n");
     Ok(s)
+}
+
+/// What an object element says beyond its primitive: its instance id, the frames it is valid
+/// over, and its timestamp (-1: static).
+struct XmlBox {
+    instance: u32,
+    span: (u32, u32),
+    timestamp: i64,
+}
+
+/// Appends `<object{index + 1}>` of primitive `p`.
+fn write_object(
+    s: &mut String,
+    index: usize,
+    p: &Primitive,
+    o: XmlBox,
+    origin: DVec3,
+) -> std::result::Result<(), String> {
+    let l = labels::by_id(p.label)
+        .filter(|l| l.kitti_id >= 0)
+        .ok_or_else(|| format!("label {} has no kittiId", p.label))?;
+    let mut m = affine_to_row_major(&p.to_world);
+    m[3] += origin.x;
+    m[7] += origin.y;
+    m[11] += origin.z;
+    let (v, f) = local_mesh(&p.shape);
+    let _ = writeln!(s, "<object{}>", index + 1);
+    matrix(s, "transform", 4, 4, "f", &m.map(num));
+    let vd: Vec<String> = v.iter().flat_map(|q| [q.x, q.y, q.z]).map(num).collect();
+    matrix(s, "vertices", v.len(), 3, "f", &vd);
+    let dt = if v.len() <= 256 { "u" } else { "i" };
+    let fd: Vec<String> = f.iter().flatten().map(|x| x.to_string()).collect();
+    matrix(s, "faces", f.len(), 3, dt, &fd);
+    let _ = writeln!(s, "  <semanticId>{}</semanticId>", l.kitti_id);
+    let _ = writeln!(s, "  <instanceId>{}</instanceId>", o.instance);
+    let (first, last) = o.span;
+    let _ = writeln!(
+        s,
+        "  <start_frame>{first}</start_frame>\n  <end_frame>{last}</end_frame>"
+    );
+    let _ = writeln!(
+        s,
+        "  <timestamp>{}</timestamp>\n  <index>{index}</index>",
+        o.timestamp
+    );
+    let _ = writeln!(
+        s,
+        "  <label>{}</label>\n  <category>{}</category>",
+        l.name,
+        category(p.label)
+    );
+    let _ = writeln!(s, "</object{}>", index + 1);
+    Ok(())
 }

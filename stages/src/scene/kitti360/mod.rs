@@ -1,7 +1,8 @@
 //! The `kitti360_scene` stage kind: the tables of `synthetic_scene` (scene_info, cameras,
 //! primitives, images, pseudo_labels, stereo_depth, lidar_depth, gt_semantic, gt_instance,
 //! gt_depth) read from a directory in the KITTI-360 layout (REFERENCE.md section 2), so real
-//! data (or data exported by `pipe export` of a synthetic scene) runs through the same pipeline.
+//! data (or data exported by `pipe export` of a synthetic scene) runs through the same pipeline;
+//! and `dynamic_boxes`, the moving objects' per-frame boxes.
 //!
 //! What it reads, relative to `root` (`{seq}` = `sequence`, `{cam}` = `00`/`01`, `{frame}` or
 //! `%010d` = the ten-digit frame number):
@@ -30,9 +31,10 @@
 //!
 //! Frames: `frames` if given (each must have a pose), else every frame in
 //! `[first_frame, last_frame]` that has a pose (KITTI-360 poses are not contiguous; frames
-//! without one are skipped). Primitives: static objects only (`timestamp` -1), kept when their
+//! without one are skipped). Primitives: the static objects (`timestamp` -1), kept when their
 //! world bounds come within `max_distance_m` of a selected camera centre; the unit cube becomes
-//! a `cuboid`, anything else a closed `mesh`. Everything is recentred on `origin` in f64.
+//! a `cuboid`, anything else a closed `mesh`. Moving objects (one box per frame, `timestamp` =
+//! the frame) go to their own table, `dynamic_boxes`, at the selected frames and as near. Everything is recentred on `origin` in f64.
 //! Tables with no source (no stereo-depth directory, no LiDAR, never GT depth) have no rows.
 //!
 //! Cache keying: [`input_files`] lists every file a run with given params reads, so the runner
@@ -53,7 +55,9 @@ use arrow::datatypes::{Float32Type, Float64Type, UInt16Type, UInt32Type, UInt8Ty
 use arrow::record_batch::RecordBatch;
 use glam::DVec3;
 
-use crate::geometry::{cameras_to_table, primitives_to_table, CameraRow, Primitive};
+use crate::geometry::{
+    cameras_to_table, dynamic_boxes_to_table, primitives_to_table, CameraRow, DynamicBox, Primitive,
+};
 use crate::labels::SKY;
 use crate::{tables, Progress, Result, Tables};
 
@@ -180,7 +184,18 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     // Primitives.
     let xml_path = p.file(&p.bboxes);
     let objects = parse::bboxes(&xml_path, &parse::read_text(&xml_path)?)?;
-    let prims = load_primitives(&xml_path, objects, origin, &centres, p.max_distance_m)?;
+    let posed_span = match (posed.keys().next(), posed.keys().next_back()) {
+        (Some(&a), Some(&b)) => (a, b),
+        _ => (0, 0),
+    };
+    let (prims, dynamic) = load_primitives(
+        &xml_path,
+        objects,
+        origin,
+        (&centres, &frames),
+        posed_span,
+        p.max_distance_m,
+    )?;
     let prims = crate::scene::edits::apply(&prims, &p.edits)?;
     progress.update(1, 4, "primitives");
 
@@ -224,6 +239,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
     let read = Read {
         cameras,
         prims,
+        dynamic,
         all,
         left,
         labelled,
@@ -245,6 +261,7 @@ pub fn load(p: &Kitti360Params, progress: &dyn Progress) -> Result<Tables> {
 struct Read {
     cameras: Vec<CameraRow>,
     prims: Vec<Primitive>,
+    dynamic: Vec<DynamicBox>,
     all: Vec<Key>,
     left: Vec<Key>,
     /// The images with pseudo labels.
@@ -282,6 +299,7 @@ fn scene_tables(
     let Read {
         cameras,
         prims,
+        dynamic,
         all,
         left,
         labelled,
@@ -319,6 +337,7 @@ fn scene_tables(
     );
     t.insert("cameras".into(), cameras_to_table(&cameras)?);
     t.insert("primitives".into(), primitives_to_table(&prims)?);
+    t.insert("dynamic_boxes".into(), dynamic_boxes_to_table(&dynamic)?);
     t.insert(
         "images".into(),
         image_table("images", &all, tables::binary(rgb.iter().flatten()))?,

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use glam::{DAffine3, DVec3};
 use rayon::prelude::*;
 
-use crate::geometry::{Camera, CameraRow, Lens, Primitive, Shape};
+use crate::geometry::{Camera, CameraRow, DynamicBox, Lens, Primitive, Shape};
 use crate::labels;
 use crate::{Result, StageError};
 
@@ -17,14 +17,20 @@ use super::params::is_fisheye;
 use super::parse::{self, err};
 use super::{EvalGt, Kitti360Params};
 
-/// The primitives of the XML that matter for cameras at `centres` (scene frame), recentred.
+/// The objects of the bounding-box XML, recentred: the static ones (`timestamp` -1) that
+/// matter for cameras at `centres` (scene frame), and the boxes of moving objects at the
+/// `selected` frames near those cameras, sorted by (object, frame). A moving object's
+/// `timestamp` must be a frame of the sequence (`poses`: its first and last posed frame), and an
+/// object (`semanticId`, `instanceId`) has at most one box per frame.
 pub(super) fn load_primitives(
     path: &Path,
     objects: Vec<parse::XmlObject>,
     origin: DVec3,
-    centres: &[DVec3],
+    cameras: (&[DVec3], &[u32]),
+    poses: (u32, u32),
     max_distance: f64,
-) -> Result<Vec<Primitive>> {
+) -> Result<(Vec<Primitive>, Vec<DynamicBox>)> {
+    let (centres, selected) = cameras;
     let near = |b: &crate::geometry::Aabb| {
         centres.iter().any(|c| {
             let q = c.clamp(b.min, b.max);
@@ -33,6 +39,8 @@ pub(super) fn load_primitives(
     };
     let (total, mut dynamic) = (objects.len(), 0);
     let mut out = Vec::new();
+    let mut moving = Vec::new();
+    let mut boxes_at: BTreeMap<(i64, i64, i64), String> = BTreeMap::new();
     for o in objects {
         let at = &o.element;
         let label = i16::try_from(o.semantic_id)
@@ -47,10 +55,6 @@ pub(super) fn load_primitives(
                     ),
                 )
             })?;
-        if o.timestamp != -1 {
-            dynamic += 1;
-            continue; // dynamic object: one box per timestamp, not a static primitive
-        }
         let instance = if label.has_instances {
             u32::try_from(o.instance_id)
                 .ok()
@@ -67,6 +71,37 @@ pub(super) fn load_primitives(
         } else {
             0
         };
+        let frame = if o.timestamp == -1 {
+            None
+        } else {
+            dynamic += 1;
+            let (lo, hi) = poses;
+            let frame = u32::try_from(o.timestamp)
+                .ok()
+                .filter(|f| (lo..=hi).contains(f))
+                .ok_or_else(|| {
+                    err(
+                        path,
+                        format!(
+                            "<{at}>/<timestamp>: {} is outside the sequence's frames \
+                             {lo}..={hi} (-1 marks a static object)",
+                            o.timestamp
+                        ),
+                    )
+                })?;
+            let key = (o.semantic_id, o.instance_id, o.timestamp);
+            if let Some(first) = boxes_at.insert(key, at.clone()) {
+                return Err(err(
+                    path,
+                    format!(
+                        "<{first}> and <{at}> are both object (semanticId {}, instanceId {}) \
+                         at frame {frame}: a moving object has one box per frame",
+                        o.semantic_id, o.instance_id
+                    ),
+                ));
+            }
+            Some(frame)
+        };
         let mut to_world = o.transform;
         to_world.translation -= origin;
         let shape = if is_unit_cube(&o.vertices, &o.faces) {
@@ -79,8 +114,16 @@ pub(super) fn load_primitives(
         };
         let p = Primitive::new(shape, to_world, label.id, instance)
             .map_err(|e| err(path, format!("<{at}> ({}): {e}", label.name)))?;
-        if near(&p.aabb()) {
-            out.push(p);
+        match frame {
+            None if near(&p.aabb()) => out.push(p),
+            Some(frame) if selected.contains(&frame) && near(&p.aabb()) => {
+                moving.push(DynamicBox {
+                    object: u32::from(label.id) * labels::INSTANCE_FACTOR + instance,
+                    frame,
+                    primitive: p,
+                })
+            }
+            _ => {}
         }
     }
     if out.is_empty() {
@@ -95,7 +138,8 @@ pub(super) fn load_primitives(
             ),
         ));
     }
-    Ok(out)
+    moving.sort_by_key(|b| (b.object, b.frame));
+    Ok((out, moving))
 }
 
 /// Whether a mesh is KITTI-360's unit cube: the 8 corners of `[-0.5, 0.5]^3` and 12 triangles.

@@ -17,6 +17,7 @@ use crate::scene::synthetic::SceneParams;
 use crate::Inputs;
 use crate::{NoProgress, Stage};
 
+mod dynamic;
 mod fisheye;
 
 fn repo() -> PathBuf {
