@@ -151,6 +151,17 @@ fn an_edit_updates_rays_and_depth_to_the_bytes_of_a_cold_run() {
     let (outcome, why) = last(&ws, "rays");
     assert_eq!(outcome, Outcome::Updated, "{why}");
     let removed = ws.stage_key("rays");
+    // Back to it after another configuration ran: its entry, cached; forced, an update of its
+    // own parent again (not of the other configuration's entry).
+    ws.run_ok(&[]);
+    ws.run_ok(&["--set", REMOVE]);
+    assert_eq!(last(&ws, "rays").0, Outcome::Cached);
+    assert_eq!(ws.stage_key("rays"), removed);
+    ws.run_ok(&[]);
+    ws.run_ok(&["--set", REMOVE, "--force", "rays"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert_eq!(ws.stage_key("rays"), removed);
     ws.run_ok(&["--set", REMOVE, "--cold"]);
     assert!(
         read(&ws.stage_key("rays")) == read(&removed),

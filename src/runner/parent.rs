@@ -105,8 +105,8 @@ pub fn find_parent(
     let mut rec = store.run_record(&s.name).ok_or(None)?;
     // Params that only say how to update, and those an update takes up (edits), may differ
     // from the parent's.
-    let recipe = |v| fingerprint::recipe(s.kind.as_ref(), v);
-    let fixed = |v| fingerprint::without(recipe(v), s.kind.editable_params());
+    let recipe = |v: &serde_json::Value| fingerprint::recipe(s.kind.as_ref(), v);
+    let fixed = |v: &serde_json::Value| fingerprint::without(recipe(v), s.kind.editable_params());
     if rec.kind != s.kind.kind()
         || rec.version != s.kind.version()
         || fixed(&rec.params) != fixed(&s.params)
@@ -123,6 +123,36 @@ pub fn find_parent(
         return Err(Some("its inputs are connected differently".into()));
     }
     let gone = |what: &str| Some(format!("{what} is no longer in the cache"));
+    // The record moved on to another configuration since this one ran: an update this stage
+    // made from these very params and inputs stands for it (found in its history).
+    let this_config = |params: &serde_json::Value, ins: &BTreeMap<String, InputInfo>| {
+        recipe(params) == recipe(&s.params)
+            && slots(ins) == slots(inputs)
+            && slots(inputs)
+                .iter()
+                .all(|k| ins[k].digest == inputs[k].digest)
+            && ins.get(FILES_SLOT).map(|x| &x.digest) == inputs.get(FILES_SLOT).map(|x| &x.digest)
+    };
+    if !this_config(&rec.params, &rec.inputs) {
+        let earlier = rec.history.iter().rev().find_map(|k| {
+            let m = store.manifest_of(k)?;
+            let fits = m.kind == s.kind.kind()
+                && m.version == s.kind.version()
+                && m.inputs.contains_key(PARENT_SLOT)
+                && this_config(&m.params, &m.inputs);
+            fits.then_some(m)
+        });
+        if let Some(m) = earlier {
+            rec = RunRecord {
+                key: m.key,
+                kind: m.kind,
+                version: m.version,
+                params: m.params,
+                inputs: m.inputs,
+                history: Vec::new(),
+            };
+        }
+    }
     // The last run was an update from these very inputs: its entry is the current one (the
     // same parent and inputs give the same key), not a parent.
     if let Some(grand) = rec.inputs.get(PARENT_SLOT) {

@@ -210,7 +210,7 @@ impl<'a> Scheduler<'a> {
         // Measuring updates (`RunOptions::prefer_update`): the update, though the entry from
         // scratch is cached.
         let prefer = self.opts.prefer_update
-            && matches!(self.parent_for(i, &inputs), Ok(Found::Parent(par)) if par.differs(&inputs))
+            && matches!(self.parent_for(i, &key, &inputs), Ok(Found::Parent(par)) if par.differs(&inputs))
             && matches!(self.store.check(&key, false), Entry::Valid(_));
         let reason = if prefer {
             "its entry from scratch is cached, but updates are measured".to_string()
@@ -220,7 +220,7 @@ impl<'a> Scheduler<'a> {
             };
             reason
         };
-        let (key, reason, parent) = match self.parent_for(i, &inputs) {
+        let (key, reason, parent) = match self.parent_for(i, &key, &inputs) {
             Ok(Found::Parent(parent)) => {
                 let (ukey, uinputs) = parent.key(p, i, &inputs);
                 let why = format!(
@@ -291,13 +291,22 @@ impl<'a> Scheduler<'a> {
     }
 
     /// The entry stage `i` updates instead of computing from scratch (see [`find_parent`]). A
-    /// forced stage computes its entry again the same way (an update stays an update).
+    /// forced stage computes its entry again the same way (an update stays an update; where
+    /// the entry from scratch of `key` is cached, that is the one the stage stands on).
     fn parent_for(
         &self,
         i: usize,
+        key: &str,
         inputs: &BTreeMap<String, InputInfo>,
     ) -> Result<Found, Option<String>> {
         if self.opts.cold || self.repairs.contains_key(&i) {
+            return Err(None);
+        }
+        let forced = self.force.contains(&i);
+        if forced
+            && !self.opts.prefer_update
+            && matches!(self.store.check(key, false), Entry::Valid(_))
+        {
             return Err(None);
         }
         let p = self.p;
@@ -305,7 +314,7 @@ impl<'a> Scheduler<'a> {
             let up = p.stages[i].inputs.get(slot)?;
             self.manifests.get(&p.index_of(up)?).cloned()
         };
-        find_parent(p, i, self.store, inputs, &current, self.force.contains(&i))
+        find_parent(p, i, self.store, inputs, &current, forced)
     }
 
     /// Why stage `i` must run, or `None` when its entry is valid (then it is done: cached).
