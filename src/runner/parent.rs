@@ -125,24 +125,8 @@ pub fn find_parent(
     let gone = |what: &str| Some(format!("{what} is no longer in the cache"));
     // The record moved on to another configuration since this one ran: an update this stage
     // made from these very params and inputs stands for it (found in its history).
-    let this_config = |params: &serde_json::Value, ins: &BTreeMap<String, InputInfo>| {
-        recipe(params) == recipe(&s.params)
-            && slots(ins) == slots(inputs)
-            && slots(inputs)
-                .iter()
-                .all(|k| ins[k].digest == inputs[k].digest)
-            && ins.get(FILES_SLOT).map(|x| &x.digest) == inputs.get(FILES_SLOT).map(|x| &x.digest)
-    };
-    if !this_config(&rec.params, &rec.inputs) {
-        let earlier = rec.history.iter().rev().find_map(|k| {
-            let m = store.manifest_of(k)?;
-            let fits = m.kind == s.kind.kind()
-                && m.version == s.kind.version()
-                && m.inputs.contains_key(PARENT_SLOT)
-                && this_config(&m.params, &m.inputs);
-            fits.then_some(m)
-        });
-        if let Some(m) = earlier {
+    if !same_config(s, (&rec.params, &rec.inputs), inputs) {
+        if let Some(m) = earlier_update(store, s, &rec.history, inputs) {
             rec = RunRecord {
                 key: m.key,
                 kind: m.kind,
@@ -246,6 +230,44 @@ pub fn find_parent(
         lineage,
         edited,
     }))
+}
+
+/// Whether a run with `params` and inputs `ins` had the current params (but those that say
+/// only how to update) and inputs of stage `s` (their digests).
+fn same_config(
+    s: &crate::config::StageDecl,
+    (params, ins): (&serde_json::Value, &BTreeMap<String, InputInfo>),
+    inputs: &BTreeMap<String, InputInfo>,
+) -> bool {
+    let recipe = |v: &serde_json::Value| fingerprint::recipe(s.kind.as_ref(), v);
+    let digest = |m: &BTreeMap<String, InputInfo>, k: &str| m.get(k).map(|x| x.digest.clone());
+    recipe(params) == recipe(&s.params)
+        && ins
+            .keys()
+            .filter(|k| !k.starts_with('@'))
+            .eq(inputs.keys().filter(|k| !k.starts_with('@')))
+        && inputs
+            .keys()
+            .all(|k| k == PARENT_SLOT || digest(ins, k) == digest(inputs, k))
+        && digest(ins, FILES_SLOT) == digest(inputs, FILES_SLOT)
+}
+
+/// The newest update among the entries `history` names that stage `s` made with its current
+/// params and inputs.
+fn earlier_update(
+    store: &Store,
+    s: &crate::config::StageDecl,
+    history: &[String],
+    inputs: &BTreeMap<String, InputInfo>,
+) -> Option<Manifest> {
+    history.iter().rev().find_map(|k| {
+        let m = store.manifest_of(k)?;
+        let fits = m.kind == s.kind.kind()
+            && m.version == s.kind.version()
+            && m.inputs.contains_key(PARENT_SLOT)
+            && same_config(s, (&m.params, &m.inputs), inputs);
+        fits.then_some(m)
+    })
 }
 
 /// A valid entry whose outputs have digest `digest`, if the cache holds one.

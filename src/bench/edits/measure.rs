@@ -30,6 +30,8 @@ pub struct Entries {
 #[derive(Debug, Clone, Default)]
 pub struct Scores {
     pub miou: Option<f64>,
+    /// The reach's IoU of each class in its GT or labels (label id, IoU), which `miou` averages.
+    pub class_iou: Vec<(u8, f64)>,
     pub pq: Option<f64>,
     /// The object's GT pixels labelled with the class its box has after the edit.
     pub object: Option<f64>,
@@ -126,6 +128,12 @@ impl Tally {
         let share = |(a, b): (u64, u64)| (b > 0).then(|| a as f64 / b as f64);
         Scores {
             miou: self.confusion.miou(),
+            class_iou: self
+                .confusion
+                .table()
+                .iter()
+                .filter_map(|c| Some((c.class, c.iou?)))
+                .collect(),
             pq: self.panoptic.result().all.map(|s| s.pq),
             object: share(self.object),
             elsewhere_changed: share(self.elsewhere).unwrap_or(0.0),
