@@ -55,7 +55,9 @@ pub(super) fn load_primitives(
                     ),
                 )
             })?;
-        let instance = if label.has_instances {
+        // A moving object keeps its id whatever its class: it is the object's name over the
+        // sequence (`object` of `dynamic_boxes`).
+        let instance = if label.has_instances || o.timestamp != -1 {
             u32::try_from(o.instance_id)
                 .ok()
                 .filter(|&i| i < labels::INSTANCE_FACTOR)

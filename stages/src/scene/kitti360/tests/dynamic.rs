@@ -149,6 +149,14 @@ fn a_moving_object_outside_the_sequence_or_twice_in_a_frame_is_refused_by_name()
         "{e}"
     );
     std::fs::remove_dir_all(root).unwrap();
+    // Two moving objects of a stuff class (kittiId 8, fence) in one frame stay two objects.
+    let stuff = [cube(10, 8, 3, 1000.0, 7), cube(11, 8, 4, 1001.0, 7)];
+    let (root, p) = fixture_with("dynamic-stuff", &stuff);
+    let boxes = dynamic_boxes_from_table(&run(&p).unwrap()["dynamic_boxes"]).unwrap();
+    let fence = u32::from(labels::by_kitti_id(8).unwrap().id) * 1000;
+    let keys: Vec<(u32, u32)> = boxes.iter().map(|b| (b.object, b.frame)).collect();
+    assert_eq!(keys, vec![(fence + 3, 7), (fence + 4, 7)]);
+    std::fs::remove_dir_all(root).unwrap();
 }
 
 #[test]
