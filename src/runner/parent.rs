@@ -127,23 +127,13 @@ pub fn find_parent(
     // made from these very params and inputs stands for it (found in its history).
     if !same_config(s, (&rec.params, &rec.inputs), inputs) {
         if let Some(m) = earlier_update(store, s, &rec.history, inputs) {
-            rec = RunRecord {
-                key: m.key,
-                kind: m.kind,
-                version: m.version,
-                params: m.params,
-                inputs: m.inputs,
-                history: Vec::new(),
-            };
+            rec = RunRecord::of(m);
         }
     }
     // The last run was an update from these very inputs: its entry is the current one (the
     // same parent and inputs give the same key), not a parent.
     if let Some(grand) = rec.inputs.get(PARENT_SLOT) {
-        let same = recipe(&rec.params) == recipe(&s.params)
-            && slots(inputs)
-                .iter()
-                .all(|k| rec.inputs[k].digest == inputs[k].digest);
+        let same = same_config(s, (&rec.params, &rec.inputs), inputs);
         if same && !again {
             return Ok(Found::Current(grand.digest.clone()));
         }
@@ -152,14 +142,7 @@ pub fn find_parent(
                 Entry::Valid(m) => m,
                 _ => return Err(gone(&format!("its parent {}", short_key(&grand.digest)))),
             };
-            rec = RunRecord {
-                key: m.key,
-                kind: m.kind,
-                version: m.version,
-                params: m.params,
-                inputs: m.inputs,
-                history: Vec::new(),
-            };
+            rec = RunRecord::of(*m);
         }
     }
     let manifest = match store.check(&rec.key, false) {

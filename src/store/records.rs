@@ -6,7 +6,12 @@ use std::{collections::BTreeMap, fs};
 
 use serde::{Deserialize, Serialize};
 
-use super::{entry::InputInfo, error::StoreError, files::write_atomic, layout::Store};
+use super::{
+    entry::{InputInfo, Manifest},
+    error::StoreError,
+    files::write_atomic,
+    layout::Store,
+};
 
 /// The last successful run of a stage instance, kept for `pipe status` explanations.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -19,6 +24,20 @@ pub struct RunRecord {
     /// Every key this stage instance has had (for `gc --keep-all-runs`).
     #[serde(default)]
     pub history: Vec<String>,
+}
+
+impl RunRecord {
+    /// The record of a run that made entry `m` (no history).
+    pub fn of(m: Manifest) -> Self {
+        Self {
+            key: m.key,
+            kind: m.kind,
+            version: m.version,
+            params: m.params,
+            inputs: m.inputs,
+            history: Vec::new(),
+        }
+    }
 }
 
 impl Store {
