@@ -223,16 +223,14 @@ fn same_config(
     inputs: &BTreeMap<String, InputInfo>,
 ) -> bool {
     let recipe = |v: &serde_json::Value| fingerprint::recipe(s.kind.as_ref(), v);
-    let digest = |m: &BTreeMap<String, InputInfo>, k: &str| m.get(k).map(|x| x.digest.clone());
-    recipe(params) == recipe(&s.params)
-        && ins
-            .keys()
-            .filter(|k| !k.starts_with('@'))
-            .eq(inputs.keys().filter(|k| !k.starts_with('@')))
-        && inputs
-            .keys()
-            .all(|k| k == PARENT_SLOT || digest(ins, k) == digest(inputs, k))
-        && digest(ins, FILES_SLOT) == digest(inputs, FILES_SLOT)
+    // Every input slot and the external files, by digest (not the parent: it is provenance).
+    let digests = |m: &'_ BTreeMap<String, InputInfo>| {
+        m.iter()
+            .filter(|(k, _)| *k != PARENT_SLOT)
+            .map(|(k, v)| (k.clone(), v.digest.clone()))
+            .collect::<Vec<_>>()
+    };
+    recipe(params) == recipe(&s.params) && digests(ins) == digests(inputs)
 }
 
 /// The newest update among the entries `history` names that stage `s` made with its current
