@@ -158,10 +158,13 @@ pub fn find_parent(
                 "its last run did not record the entry of input `{slot}`"
             ))
         })?;
+        let read = &rec.inputs[slot].digest;
         let old = match store.check(before, false) {
-            Entry::Valid(m) => m,
+            // The entry as the last run read it (a forced run may since have written other
+            // bytes under the same key: nondeterministic on a GPU, or code changed in place).
+            Entry::Valid(m) if &m.output_digest == read => m,
             // Gone (collected, say), but an entry with the same bytes serves as well.
-            _ => same_bytes(store, &rec.inputs[slot].digest)
+            _ => same_bytes(store, read)
                 .ok_or_else(|| gone(&format!("the input `{slot}` of its last run")))?,
         };
         let new = current(slot).ok_or_else(|| Some(format!("input `{slot}` has no entry")))?;

@@ -20,10 +20,11 @@ impl TypedStage for SyntheticScene {
     type Params = SceneParams;
     const KIND: &'static str = "synthetic_scene";
     // 3: `cameras` lists the cameras rendered (was `fisheye: true`); the same tables.
-    const VERSION: u32 = 3;
+    // 4: the table `dynamic_boxes` (moving objects, `moving_objects`).
+    const VERSION: u32 = 4;
     const DESCRIPTION: &'static str =
-        "synthetic urban street: stereo images, GT labels and depth, 3D bounding primitives, \
-         noisy pseudo labels, stereo and LiDAR depth";
+        "synthetic urban street: stereo images, GT labels and depth, 3D bounding primitives \
+         (and moving objects' boxes), noisy pseudo labels, stereo and LiDAR depth";
     const INPUTS: &'static [InputSlot] = &[];
     const MOVED: &'static [(&'static str, &'static str)] = &[(
         "fisheye",
@@ -33,6 +34,7 @@ impl TypedStage for SyntheticScene {
         "scene_info",
         "cameras",
         "primitives",
+        "dynamic_boxes",
         "images",
         "pseudo_labels",
         "stereo_depth",
@@ -78,7 +80,8 @@ impl TypedStage for SyntheticScene {
     }
 }
 
-/// The tables an edit of the annotation changes (`primitives`, `scene_info`), from `previous`,
+/// The tables an edit of the annotation changes (`primitives`, `scene_info`; `dynamic_boxes`
+/// written again, the same), from `previous`,
 /// the same street generated with other edits: the images, labels and depth stay the same (the
 /// edits change the annotation only), so the classes of its GT images carry over.
 fn edited_tables(p: &SceneParams, previous: &TableSet) -> Result<Tables> {

@@ -29,6 +29,9 @@ pub struct TrainImage {
     pub targets: Targets,
     /// Stereo depth, where the image has one.
     pub depth: Option<SparseDepth>,
+    /// Pixels (ascending) where a moving object may be seen (see [`ImageRays::mark_moving`]):
+    /// training leaves them out, so a moving car does not smear into the static field.
+    pub moving: Vec<u32>,
 }
 
 /// The per-pixel targets of one image: RGB (bytes), and pseudo labels where the image has them;
@@ -141,6 +144,31 @@ impl ImageRays {
     /// The index in `images` of ray `r`'s image.
     pub fn image_index(&self, r: u32) -> usize {
         self.images.partition_point(|im| im.first_ray <= r) - 1
+    }
+
+    /// Marks in every image the pixels a moving object may be seen at
+    /// ([`TrainImage::moving`]): whose ray crosses one of `boxes` (moving objects' boxes) at the
+    /// image's frame and, in an image with pseudo labels, whose pseudo label is a class of those
+    /// boxes. The rest of a box's outline sees the static scene around the object and trains it.
+    pub fn mark_moving(&mut self, boxes: &[geometry::DynamicBox]) {
+        let mut by_frame: HashMap<u32, Vec<Primitive>> = HashMap::new();
+        for b in boxes {
+            by_frame
+                .entry(b.frame)
+                .or_default()
+                .push(b.primitive.clone());
+        }
+        for im in &mut self.images {
+            let Some(b) = by_frame.get(&im.frame) else {
+                im.moving = Vec::new();
+                continue;
+            };
+            let mut pixels = geometry::changes::pixels_meeting(&im.cam, b, f64::INFINITY);
+            if let Some(labels) = &im.targets.labels {
+                pixels.retain(|&p| b.iter().any(|x| x.label == labels[p as usize]));
+            }
+            im.moving = pixels;
+        }
     }
 
     /// Whether ray `r` crosses a primitive, by the `intersect` stage's plan.
@@ -365,6 +393,7 @@ pub fn train_rays(inputs: &Inputs) -> Result<ImageRays> {
                     .transpose()?,
                 None => None,
             },
+            moving: Vec::new(),
         });
         first_ray += n as u64;
     }

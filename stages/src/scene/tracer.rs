@@ -7,7 +7,7 @@
 //! `supersample` n > 1 the mean radiance over an n x n grid of rays spread evenly over the
 //! pixel, as a real sensor integrates light over the pixel's footprint.
 
-use crate::geometry::{Bvh, Camera, DVec3, Ray};
+use crate::geometry::{Bvh, Camera, DVec3, Hit, Primitive, Ray};
 use crate::labels::{is_paper_thing, INSTANCE_FACTOR, SKY};
 
 use super::layout::{Layout, Material, Pattern};
@@ -222,9 +222,65 @@ pub struct Sample {
     pub radiance: [f64; 3],
 }
 
+/// The true geometry at one frame: the static street and the moving objects where that frame
+/// puts them.
+pub struct World<'a> {
+    pub layout: &'a Layout,
+    /// Over `layout.parts`.
+    pub bvh: &'a Bvh,
+    /// The movers' parts at this frame, their materials and hierarchy.
+    moving: Vec<Primitive>,
+    moving_materials: Vec<Material>,
+    moving_bvh: Bvh,
+}
+
+impl<'a> World<'a> {
+    /// The street at `frame`.
+    pub fn at(layout: &'a Layout, bvh: &'a Bvh, frame: u32) -> Self {
+        let (mut moving, mut moving_materials) = (Vec::new(), Vec::new());
+        for m in &layout.movers {
+            let parts = m.parts_at(frame);
+            moving_materials.extend(m.materials.iter().take(parts.len()).copied());
+            moving.extend(parts);
+        }
+        let moving_bvh = Bvh::build(&moving);
+        Self {
+            layout,
+            bvh,
+            moving,
+            moving_materials,
+            moving_bvh,
+        }
+    }
+
+    /// The nearest surface along `ray` in `[t_min, t_max]`: its hit, part and material.
+    pub fn first_hit(
+        &self,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+    ) -> Option<(Hit, &Primitive, &Material)> {
+        let still = self.bvh.first_hit(&self.layout.parts, ray, t_min, t_max);
+        let end = still.as_ref().map_or(t_max, |h| h.t_in.max(t_min));
+        if let Some(h) = self.moving_bvh.first_hit(&self.moving, ray, t_min, end) {
+            if still
+                .as_ref()
+                .is_none_or(|s| h.t_in.max(t_min) < s.t_in.max(t_min))
+            {
+                let k = h.prim as usize;
+                return Some((h, &self.moving[k], &self.moving_materials[k]));
+            }
+        }
+        still.map(|h| {
+            let k = h.prim as usize;
+            (h, &self.layout.parts[k], &self.layout.materials[k])
+        })
+    }
+}
+
 /// Traces one ray against the true geometry.
-pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
-    let Some(hit) = bvh.first_hit(&layout.parts, ray, 0.0, 1.0e4) else {
+pub fn trace(world: &World, ray: &Ray) -> Sample {
+    let Some((hit, part, material)) = world.first_hit(ray, 0.0, 1.0e4) else {
         return Sample {
             label: SKY,
             instance: SKY as u16 * INSTANCE_FACTOR as u16,
@@ -232,11 +288,10 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
             radiance: sky(ray.dir),
         };
     };
-    let part = &layout.parts[hit.prim as usize];
     let t = hit.t_in.max(0.0);
     let p = ray.at(t);
     let n = hit.normal_in;
-    let a = albedo(&layout.materials[hit.prim as usize], p, n, layout.texture);
+    let a = albedo(material, p, n, world.layout.texture);
     let s = sun();
     let lit = n.dot(s).max(0.0);
     let shadow = lit > 0.0 && {
@@ -244,7 +299,7 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
             origin: p + n * 1e-4,
             dir: s,
         };
-        bvh.first_hit(&layout.parts, &sray, 1e-3, 300.0).is_some()
+        world.first_hit(&sray, 1e-3, 300.0).is_some()
     };
     let direct = if shadow { 0.0 } else { 0.75 * lit };
     // Contact darkening at the foot of vertical surfaces.
@@ -272,8 +327,7 @@ pub fn trace(layout: &Layout, bvh: &Bvh, ray: &Ray) -> Sample {
 /// Sub-pixel rays outside a fisheye's lens are left out of the mean (the centre ray's radiance
 /// when all are).
 pub fn pixel_radiance(
-    layout: &Layout,
-    bvh: &Bvh,
+    world: &World,
     cam: &Camera,
     (x, y): (usize, usize),
     n: u32,
@@ -294,7 +348,7 @@ pub fn pixel_radiance(
                 let Some(ray) = cam.ray(u, v) else {
                     continue;
                 };
-                trace(layout, bvh, &ray).radiance
+                trace(world, &ray).radiance
             };
             for k in 0..3 {
                 sum[k] += radiance[k];
@@ -310,7 +364,7 @@ pub fn pixel_radiance(
 }
 
 /// Renders one image; `supersample` rays per pixel side for the colour (1: the centre ray).
-pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look, supersample: u32) -> Rendered {
+pub fn render(world: &World, cam: &Camera, look: &Look, supersample: u32) -> Rendered {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let mut out = Rendered {
         rgb: vec![0; w * h * 3],
@@ -327,7 +381,7 @@ pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look, supersample
             let Some(ray) = cam.pixel_ray(x as u32, y as u32) else {
                 continue;
             };
-            let s = trace(layout, bvh, &ray);
+            let s = trace(world, &ray);
             out.labels[i] = s.label;
             out.instances[i] = s.instance;
             if let Some(t) = s.t {
@@ -337,7 +391,7 @@ pub fn render(layout: &Layout, bvh: &Bvh, cam: &Camera, look: &Look, supersample
                 let d2 = (x as f64 + 0.5 - gu).powi(2) + (y as f64 + 0.5 - gv).powi(2);
                 k * (-d2 / (r * r)).exp()
             });
-            let radiance = pixel_radiance(layout, bvh, cam, (x, y), supersample, s.radiance);
+            let radiance = pixel_radiance(world, cam, (x, y), supersample, s.radiance);
             let mut clipped = false;
             for (c, r) in radiance.iter().enumerate() {
                 let v = r * look.exposure + glare + 0.006 * rng.normal();

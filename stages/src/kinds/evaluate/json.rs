@@ -37,19 +37,31 @@ pub fn depth_breakdown_json(t: &RecordBatch) -> Result<serde_json::Value> {
 /// `{camera model: {method: {metric: value, ..., "class_iou": {class name: iou}}}}` from the
 /// `camera_metrics` and `camera_class_iou` tables.
 pub fn camera_metrics_json(t: &RecordBatch, classes: &RecordBatch) -> Result<serde_json::Value> {
-    let models = tables::get_strings(t, "camera_metrics", "camera_model")?;
-    let methods = tables::get_strings(t, "camera_metrics", "method")?;
-    let metrics = tables::get_strings(t, "camera_metrics", "metric")?;
+    let mut out = grouped_json(t, "camera_metrics", "camera_model")?;
+    add_class_iou(&mut out, classes, "camera_class_iou")?;
+    Ok(out)
+}
+
+/// `{part: {method: {metric: value}}}` from the `motion_metrics` table (static and moving
+/// pixels; empty where the scene has no moving objects).
+pub fn motion_metrics_json(t: &RecordBatch) -> Result<serde_json::Value> {
+    grouped_json(t, "motion_metrics", "part")
+}
+
+/// `{group: {method: {metric: value}}}` from a metrics table with a first column `key`.
+fn grouped_json(t: &RecordBatch, table: &str, key: &str) -> Result<serde_json::Value> {
+    let groups = tables::get_strings(t, table, key)?;
+    let methods = tables::get_strings(t, table, "method")?;
+    let metrics = tables::get_strings(t, table, "metric")?;
     let values = t
         .column_by_name("value")
         .and_then(|c| c.as_any().downcast_ref::<Float64Array>())
-        .ok_or_else(|| StageError::Input("camera_metrics.value is not float64".into()))?;
+        .ok_or_else(|| StageError::Input(format!("{table}.value is not float64")))?;
     let mut out = serde_json::json!({});
     for i in 0..t.num_rows() {
-        entry_of(entry_of(&mut out, models.value(i)), methods.value(i))[metrics.value(i)] =
+        entry_of(entry_of(&mut out, groups.value(i)), methods.value(i))[metrics.value(i)] =
             value_at(values, i);
     }
-    add_class_iou(&mut out, classes, "camera_class_iou")?;
     Ok(out)
 }
 

@@ -31,23 +31,28 @@ use crate::{
 mod depth_bins;
 mod images;
 mod json;
+mod motion;
 mod params;
 mod review;
 mod sums;
 
 use depth_bins::{depth_bin_keys, BinKey};
 use images::{check_size, map_f32, map_u16, map_u8, one_image};
-pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json};
+pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json, motion_metrics_json};
+pub use motion::PARTS as MOTION_PARTS;
+use motion::{MotionGroups, MovingObjects, PARTS};
 pub use params::{EvaluateParams, PANOPTICAPI_SUFFIX, PQ_CONVENTIONS};
 use sums::{ClassRows, FrameMaps, Group, GtRows, MetricRows};
 
 pub struct Evaluate;
 
-/// Label and panoptic maps of "the first primitive each ray hits" (sky where none is hit).
+/// Label and panoptic maps of "the first primitive each ray hits" (sky where none is hit):
+/// the static `prims` and the moving objects' boxes at the image's frame (`moving`).
 pub fn first_primitive_maps(
     cam: &geometry::Camera,
     prims: &[Primitive],
     bvh: &Bvh,
+    moving: (&[Primitive], Option<&Bvh>),
 ) -> (Vec<u8>, Vec<u16>) {
     let n = (cam.width * cam.height) as usize;
     let mut sem = vec![labels::SKY; n];
@@ -62,8 +67,18 @@ pub fn first_primitive_maps(
                 *ins = 0;
                 return;
             };
-            if let Some(hit) = bvh.first_hit(prims, &ray, 0.0, f64::INFINITY) {
-                let p = &prims[hit.prim as usize];
+            let still = bvh
+                .first_hit(prims, &ray, 0.0, f64::INFINITY)
+                .map(|h| (h.t_in.max(0.0), &prims[h.prim as usize]));
+            let end = still.map_or(f64::INFINITY, |(t, _)| t);
+            let moved = moving.1.and_then(|b| b.first_hit(moving.0, &ray, 0.0, end));
+            let first = match moved {
+                Some(h) if still.is_none_or(|(t, _)| h.t_in.max(0.0) < t) => {
+                    Some(&moving.0[h.prim as usize])
+                }
+                _ => still.map(|(_, p)| p),
+            };
+            if let Some(p) = first {
                 *s = p.label;
                 *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;
             }
@@ -180,11 +195,19 @@ struct Evaluation {
     gt: GtRows,
     /// Where the rendered depth's error comes from (ours; LiDAR pixels).
     depth_bins: DepthBins<BinKey>,
+    /// The scene's moving objects, and their pixels and the rest scored apart (where it has
+    /// any).
+    moving: MovingObjects,
+    by_motion: Option<MotionGroups>,
 }
 
 impl Evaluation {
-    fn new(p: &EvaluateParams, models: &[&'static str]) -> Result<Self> {
+    fn new(p: &EvaluateParams, models: &[&'static str], moving: MovingObjects) -> Result<Self> {
         Ok(Self {
+            by_motion: (!moving.is_empty())
+                .then(|| MotionGroups::new(p))
+                .transpose()?,
+            moving,
             depth_bins: DepthBins::new(p.max_depth)?,
             all: Group::new(p)?,
             by_model: models
@@ -227,7 +250,7 @@ impl Evaluation {
             .as_ref()
             .map(|r| map_u8(&one_image(r, "pseudo_labels")?, "pseudo_labels", "labels"))
             .transpose()?;
-        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh);
+        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh, self.moving.at(c.frame));
         let gsem = map_u8(g, "gt_semantic", "labels")?;
         let f = FrameMaps {
             boundary: labels::label_edges(gsem, g.width),
@@ -268,6 +291,9 @@ impl Evaluation {
             .get_mut(camera_model(c))
             .expect("a group per evaluated camera model")
             .add(&f)?;
+        if let Some(parts) = &mut self.by_motion {
+            parts.add(&f, &self.moving.mask(&c.cam, c.frame))?;
+        }
         for (method, labels) in [
             ("panoptic_nerf", Some(f.ours)),
             ("fixed_field", Some(f.fixed)),
@@ -379,9 +405,9 @@ impl Evaluation {
         )
     }
 
-    /// The `metrics`, `class_iou`, `camera_metrics` and `camera_class_iou` tables.
-    /// `review`: the review's figures, rows of `panoptic_nerf` in `metrics`.
-    fn score_tables(&self, review: &[(String, Option<f64>)]) -> Result<[RecordBatch; 4]> {
+    /// The `metrics`, `class_iou`, `camera_metrics`, `camera_class_iou` and `motion_metrics`
+    /// tables. `review`: the review's figures, rows of `panoptic_nerf` in `metrics`.
+    fn score_tables(&self, review: &[(String, Option<f64>)]) -> Result<[RecordBatch; 5]> {
         let mut rows = MetricRows::default();
         let mut ciou = ClassRows::default();
         self.all.scores(
@@ -405,11 +431,19 @@ impl Evaluation {
                 by_model.push(Some(ACROSS_MODELS), method, "mc", v);
             }
         }
+        let mut by_motion = MetricRows::default();
+        for (part, group) in PARTS
+            .iter()
+            .zip(self.by_motion.iter().flat_map(|m| &m.parts))
+        {
+            group.scores(|m, k, v| by_motion.push(Some(part), m, k, v), |_, _| {});
+        }
         Ok([
             rows.table("metrics")?,
             ciou.table("class_iou")?,
             by_model.table("camera_metrics")?,
             model_ciou.table("camera_class_iou")?,
+            by_motion.table("motion_metrics")?,
         ])
     }
 }
@@ -418,7 +452,9 @@ impl TypedStage for Evaluate {
     type Params = EvaluateParams;
     const KIND: &'static str = "evaluate";
     // 10: with a `review` input, the review's figures against GT in `metrics`.
-    const VERSION: u32 = 10;
+    // 11: `motion_metrics` (static and moving pixels apart); the first-primitive baseline
+    // includes the moving objects' boxes.
+    const VERSION: u32 = 11;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[
@@ -428,6 +464,7 @@ impl TypedStage for Evaluate {
                 "scene_info",
                 "cameras",
                 "primitives",
+                "dynamic_boxes",
                 "gt_semantic",
                 "gt_instance",
                 "pseudo_labels",
@@ -457,6 +494,7 @@ impl TypedStage for Evaluate {
         "camera_metrics",
         "camera_class_iou",
         "depth_breakdown",
+        "motion_metrics",
     ];
 
     fn validate(p: &EvaluateParams) -> Result<()> {
@@ -514,14 +552,16 @@ impl TypedStage for Evaluate {
         let mut models: Vec<&'static str> = eval.iter().map(|c| camera_model(c)).collect();
         models.sort_unstable();
         models.dedup();
-        let mut run = Evaluation::new(p, &models)?;
+        let moving = geometry::dynamic_boxes_from_table(inputs.table("scene", "dynamic_boxes")?)?;
+        let mut run = Evaluation::new(p, &models, MovingObjects::new(moving))?;
         for (n, c) in eval.iter().enumerate() {
             progress.update(n as u64, eval.len() as u64, "evaluating");
             run.add_frame(&maps, c, &prims, &bvh)?;
         }
         run.add_consistency(&maps, &eval, p.mc_distance)?;
         let review = review::review_figures(inputs, |c| p.scores(c), progress)?;
-        let [metrics, class_iou, camera_metrics, camera_class_iou] = run.score_tables(&review)?;
+        let [metrics, class_iou, camera_metrics, camera_class_iou, motion_metrics] =
+            run.score_tables(&review)?;
         let depth_breakdown = run.depth_table()?;
         let info = inputs.table("scene", "scene_info")?;
         let sequence = tables::get_strings(info, "scene_info", "sequence")?;
@@ -536,6 +576,7 @@ impl TypedStage for Evaluate {
             ("camera_metrics".to_string(), camera_metrics),
             ("camera_class_iou".to_string(), camera_class_iou),
             ("depth_breakdown".to_string(), depth_breakdown),
+            ("motion_metrics".to_string(), motion_metrics),
         ]))
     }
 
@@ -552,6 +593,7 @@ impl TypedStage for Evaluate {
         json["by_camera_model"] =
             camera_metrics_json(t.table("camera_metrics")?, t.table("camera_class_iou")?)?;
         json["depth_breakdown"] = depth_breakdown_json(t.table("depth_breakdown")?)?;
+        json["by_motion"] = motion_metrics_json(t.table("motion_metrics")?)?;
         let path = dir.join("metrics.json");
         std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap_or_default())
             .map_err(|e| StageError::Failed(format!("writing {}: {e}", path.display())))?;

@@ -369,7 +369,7 @@ pub(super) struct FrameMaps<'a> {
     pub(super) boundary: Vec<bool>,
 }
 
-/// Rows of the `metrics` table (no camera model) or the `camera_metrics` table.
+/// Rows of the `metrics` table (no group), or of `camera_metrics` or `motion_metrics`.
 #[derive(Default)]
 pub(super) struct MetricRows {
     pub(super) model: Vec<String>,
@@ -390,7 +390,8 @@ impl MetricRows {
 
     pub(super) fn table(self, name: &str) -> Result<RecordBatch> {
         let mut cols = Vec::new();
-        if name == "camera_metrics" {
+        // `camera_metrics` and `motion_metrics` lead with their group (camera model, part).
+        if name != "metrics" {
             cols.push(tables::strings(&self.model));
         }
         cols.extend([

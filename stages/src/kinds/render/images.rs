@@ -9,6 +9,7 @@ use arrow::record_batch::RecordBatch;
 
 use glam::DQuat;
 
+use super::moving::MovingLabels;
 use super::params::{Colour, NovelView, RenderParams, NOVEL_CAMERA_BASE};
 use crate::geometry::{self, changes::pixels_meeting, changes::ChangeView, Camera, CameraRow};
 use crate::geometry::{DAffine3, DVec3, Primitive};
@@ -126,12 +127,10 @@ pub(super) fn render_all(
     let trained = weights::trained_engine(inputs.table("train", "model")?)?;
     let engine = p.backend.resolve(&model.spec.config, trained);
     let field = engine.field(model.spec.clone(), rows)?;
+    // The samples per ray of the training, or the `samples` param.
+    let samples = Some(p.samples).filter(|&n| n > 0);
     let sampling = SamplingParams {
-        samples: if p.samples > 0 {
-            p.samples
-        } else {
-            model.sampling.samples
-        },
+        samples: samples.unwrap_or(model.sampling.samples),
         ..model.sampling.clone()
     };
     let renderer = |rgb: bool| Renderer {
@@ -170,6 +169,7 @@ pub(super) fn render_all(
         total += pixels(&camera_of(key)?.cam);
     }
     let seq = sequence(inputs)?;
+    let moving = MovingLabels::new(inputs)?;
     let mut out = inputs.writer("label_maps")?;
     // The lens mask of each camera, kept while its intrinsics stay the same.
     let mut masks: HashMap<u8, (Camera, Vec<bool>)> = HashMap::new();
@@ -199,14 +199,9 @@ pub(super) fn render_all(
         })?;
         let input = images.row(*input)?;
         let rgb = tables::get_binary(&input, "images", "rgb")?.value(0);
-        let mask = match masks.get(&camera) {
-            Some((c, m)) if c.same_pixels(cam) => m,
-            _ => {
-                masks.insert(camera, (cam.clone(), lens_mask(cam)));
-                &masks[&camera].1
-            }
-        };
+        let mask = lens_mask_of(&mut masks, camera, cam);
         let sky_in = SkyColour::FromInput(rgb);
+        let labels = moving.pseudo_labels(frame, camera, n)?;
         let sky = counts.render(
             &r,
             &rays,
@@ -216,6 +211,9 @@ pub(super) fn render_all(
             part,
             &mut out,
             &seq,
+            |m| {
+                moving.boxes.overlay(m, cam, labels.as_deref());
+            },
         )?;
         for (acc, v) in sky_sum.iter_mut().zip(sky) {
             *acc += v;
@@ -244,6 +242,9 @@ pub(super) fn render_all(
                 part,
                 &mut out,
                 &seq,
+                |m| {
+                    moving.boxes.overlay(m, cam, None);
+                },
             )?;
             done += pixels(cam);
             progress.update(done, total, &format!("novel view {camera}"));
@@ -252,6 +253,18 @@ pub(super) fn render_all(
     let mut tables = Tables::new();
     out.finish_into(&mut tables)?;
     Ok((tables, counts))
+}
+
+/// The lens mask of `cam` (camera `camera`), from `masks` while its intrinsics stay the same.
+fn lens_mask_of<'m>(
+    masks: &'m mut HashMap<u8, (Camera, Vec<bool>)>,
+    camera: u8,
+    cam: &Camera,
+) -> &'m [bool] {
+    if !masks.get(&camera).is_some_and(|(c, _)| c.same_pixels(cam)) {
+        masks.insert(camera, (cam.clone(), lens_mask(cam)));
+    }
+    &masks[&camera].1
 }
 
 /// The images of the plan to render, (plan row, (frame, camera)), after the `frames` param.
@@ -291,11 +304,12 @@ impl Rendered {
         part: Part,
         out: &mut crate::stage::TableWriter,
         seq: &str,
+        moving: impl FnOnce(&mut ImageMaps),
     ) -> Result<[f32; 3]> {
         let n = rays.cam.width as u64 * rays.cam.height as u64;
         self.images += 1;
         self.pixels += n;
-        let (maps, sky) = match part {
+        let (mut maps, sky) = match part {
             Part::Keep(maps, before) => {
                 out.write_from(maps, before, &[])?;
                 return sky_colour(rays, in_lens, sky).map_err(|e| {
@@ -317,6 +331,7 @@ impl Rendered {
                 render_image_again(r, rays, in_lens, frame, camera, sky, Some(again))?
             }
         };
+        moving(&mut maps);
         out.write(label_maps_row(seq, maps)?)?;
         Ok(sky)
     }

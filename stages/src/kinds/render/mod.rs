@@ -2,10 +2,12 @@
 //! maps: the learned semantic map (argmax S), the fixed-field map (argmax S_hat), the panoptic
 //! map (fixed instance field rendered with the learned weights, masked by the argmax class),
 //! depth, colour and confidence. Rays that cross no primitive are sky without any network
-//! evaluation; compositing stops once transmittance is negligible. After an edit of the
+//! evaluation; compositing stops once transmittance is negligible. Moving objects are labelled
+//! over the static field's maps from their per-frame boxes ([`moving`]). After an edit of the
 //! primitives it renders again only the pixels whose ray can meet a changed primitive.
 
 mod images;
+mod moving;
 mod params;
 mod update;
 
@@ -28,8 +30,10 @@ pub struct Render;
 impl TypedStage for Render {
     type Params = RenderParams;
     const KIND: &'static str = "render";
+    // 11: moving objects labelled from their boxes (`dynamic_boxes`), trimmed by the pseudo
+    // labels and the static depth; the same maps for a scene without moving objects.
     // 10: `adaptive: false` is `coarse_stride: 1` (one knob); the same maps.
-    const VERSION: u32 = 10;
+    const VERSION: u32 = 11;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const MOVED: &'static [(&'static str, &'static str)] =
@@ -37,9 +41,17 @@ impl TypedStage for Render {
     const INPUTS: &'static [InputSlot] = &[
         InputSlot {
             name: "scene",
-            tables: &["scene_info", "cameras", "primitives", "images"],
+            tables: &[
+                "scene_info",
+                "cameras",
+                "primitives",
+                "dynamic_boxes",
+                "images",
+                "pseudo_labels",
+            ],
             optional: false,
-            doc: "the scene (the input images give the sky colour)",
+            doc: "the scene (the input images give the sky colour; moving objects are labelled \
+                  from their boxes, trimmed by the pseudo labels)",
         },
         InputSlot {
             name: "rays",

@@ -21,6 +21,7 @@ use crate::stage::{
 };
 use crate::{labels, tables};
 
+mod motion;
 mod review;
 
 #[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
@@ -143,6 +144,27 @@ fn metric_map(t: &RecordBatch) -> Result<BTreeMap<String, BTreeMap<String, Optio
         );
     }
     Ok(out)
+}
+
+/// (group, method) -> metric -> value, of a metrics table whose first column is `key` (the
+/// camera model of `camera_metrics`, the part of `motion_metrics`).
+type GroupedMetrics = BTreeMap<(String, String), BTreeMap<String, Option<f64>>>;
+
+fn grouped_metric_map(t: &RecordBatch, table: &str, key: &str) -> Result<GroupedMetrics> {
+    let groups = tables::get_strings(t, table, key)?;
+    let methods = tables::get_strings(t, table, "method")?;
+    let metrics = tables::get_strings(t, table, "metric")?;
+    let values = f64_col(t, table, "value")?;
+    let mut by = GroupedMetrics::new();
+    for i in 0..t.num_rows() {
+        by.entry((groups.value(i).into(), methods.value(i).into()))
+            .or_default()
+            .insert(
+                metrics.value(i).into(),
+                (!values.is_null(i)).then(|| values.value(i)),
+            );
+    }
+    Ok(by)
 }
 
 /// One method's row of a scores table, in Markdown and HTML: the `lead` cells, the method's
@@ -422,19 +444,7 @@ impl Page {
     /// The scores per camera model, when the evaluation covered fisheye cameras: one row per
     /// (model, method), and cross-view consistency between the models.
     fn camera_models(&mut self, t: &RecordBatch) -> Result<()> {
-        let models = tables::get_strings(t, "camera_metrics", "camera_model")?;
-        let methods = tables::get_strings(t, "camera_metrics", "method")?;
-        let metrics = tables::get_strings(t, "camera_metrics", "metric")?;
-        let values = f64_col(t, "camera_metrics", "value")?;
-        let mut by: BTreeMap<(String, String), BTreeMap<String, Option<f64>>> = BTreeMap::new();
-        for i in 0..t.num_rows() {
-            by.entry((models.value(i).into(), methods.value(i).into()))
-                .or_default()
-                .insert(
-                    metrics.value(i).into(),
-                    (!values.is_null(i)).then(|| values.value(i)),
-                );
-        }
+        let by = grouped_metric_map(t, "camera_metrics", "camera_model")?;
         if !by.keys().any(|(m, _)| m == "fisheye") {
             return Ok(());
         }
@@ -678,7 +688,8 @@ impl TypedStage for Report {
     type Params = ReportParams;
     const KIND: &'static str = "report";
     // 8: the review section; loss curves on a symlog axis where a term is zero or negative.
-    const VERSION: u32 = 8;
+    // 9: the "Static and moving pixels" table where the scene has moving objects.
+    const VERSION: u32 = 9;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
@@ -697,6 +708,7 @@ impl TypedStage for Report {
                 "camera_metrics",
                 "camera_class_iou",
                 "depth_breakdown",
+                "motion_metrics",
             ],
             optional: false,
             doc: "metrics and the GT they were computed against",
@@ -750,6 +762,7 @@ impl TypedStage for Report {
             page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
             let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
             page.camera_models(inputs.table("evaluate", "camera_metrics")?)?;
+            page.motion_parts(inputs.table("evaluate", "motion_metrics")?)?;
             page.camera_class_iou(inputs.table("evaluate", "camera_class_iou")?)?;
             page.depth_breakdown(inputs.table("evaluate", "depth_breakdown")?)?;
             present

@@ -8,13 +8,13 @@ use arrow::datatypes::{Float32Type, Float64Type, UInt32Type};
 use arrow::record_batch::RecordBatch;
 
 use super::params::TrainParams;
-use crate::geometry::DVec3;
+use crate::geometry::{self, DVec3};
 use crate::model::{
     fit, weights, BatchOrder, FieldSpec, LossTerm, LossTerms, ModelInfo, NamedWeight, RayBatch,
     TrainConfig, TrainError,
 };
 use crate::rng::{mix, SplitMix64};
-use crate::sampling::{self, ImageRays, JitterLabels, JitteredRays, PrimInfo};
+use crate::sampling::{self, ImageRays, JitterLabels, JitteredRays, PrimInfo, TrainImage};
 use crate::stage::{Inputs, Progress, Result, StageError, Tables};
 use crate::{labels, tables};
 
@@ -91,8 +91,8 @@ pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> Fi
     }
 }
 
-/// Rays of the selected cameras (empty: every camera) that cross a primitive: the ones
-/// training draws from.
+/// Rays of the selected cameras (empty: every camera) that cross a primitive and no moving
+/// object's box: the ones training draws from.
 pub(super) fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
     let used = || {
         rays.images
@@ -100,25 +100,29 @@ pub(super) fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
             .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
     };
     // Counted first: tens of millions of ids, and a growing Vec would hold up to twice that.
-    let n = used()
-        .map(|im| im.hits.iter().filter(|&&h| h > 0).count())
-        .sum();
+    let n = used().map(|im| trained_pixels(im).count()).sum();
     let mut out = Vec::with_capacity(n);
     for im in used() {
-        out.extend(
-            im.hits
-                .iter()
-                .enumerate()
-                .filter(|(_, &h)| h > 0)
-                .map(|(p, _)| im.first_ray + p as u32),
-        );
+        out.extend(trained_pixels(im).map(|p| im.first_ray + p));
     }
     out
+}
+
+/// The pixels of `im` training draws: those crossing a primitive, less the moving ones (both
+/// walked in ascending order).
+fn trained_pixels(im: &TrainImage) -> impl Iterator<Item = u32> + '_ {
+    let mut moving = im.moving.iter().copied().peekable();
+    (0..im.hits.len() as u32).filter(move |&p| {
+        while moving.next_if(|&m| m < p).is_some() {}
+        im.hits[p as usize] > 0 && moving.peek() != Some(&p)
+    })
 }
 
 /// The scene's training rays, with stereo depth kept where `losses.depth_classes` says.
 pub(super) fn training_rays(p: &TrainParams, inputs: &Inputs) -> Result<ImageRays> {
     let mut rays = sampling::train_rays(inputs)?;
+    let moving = geometry::dynamic_boxes_from_table(inputs.table("scene", "dynamic_boxes")?)?;
+    rays.mark_moving(&moving);
     let depth_classes = p.depth_class_ids()?;
     if !depth_classes.is_empty() && !depth_classes.iter().any(|c| rays.prims.classes.contains(c)) {
         // L_depth would silently be off.
@@ -304,4 +308,135 @@ pub(super) fn nothing_crossed(inputs: &Inputs, cameras: &[u8]) -> Result<String>
         used.len(),
         prims.len()
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Camera, DAffine3, Lens};
+    use crate::sampling::Targets;
+
+    fn image(hits: Vec<u8>, moving: Vec<u32>) -> TrainImage {
+        let n = hits.len() as u32;
+        TrainImage {
+            frame: 0,
+            camera: 0,
+            cam: Camera {
+                width: n,
+                height: 1,
+                fx: 1.0,
+                fy: 1.0,
+                cx: 0.5,
+                cy: 0.5,
+                lens: Lens::Pinhole,
+                cam_to_world: DAffine3::IDENTITY,
+            },
+            first_ray: 0,
+            hits,
+            targets: Targets {
+                rgb: Vec::new(),
+                labels: None,
+            },
+            depth: None,
+            moving,
+        }
+    }
+
+    /// Training draws the pixels that cross a primitive and are not moving, against a brute
+    /// force over every pattern of 6 pixels.
+    #[test]
+    fn trained_pixels_are_the_hit_ones_less_the_moving_ones() {
+        for hit_bits in 0u32..64 {
+            for moving_bits in (0u32..64).step_by(7) {
+                let hits: Vec<u8> = (0..6).map(|p| ((hit_bits >> p) & 1) as u8 * 2).collect();
+                let moving: Vec<u32> = (0..6).filter(|p| (moving_bits >> p) & 1 == 1).collect();
+                let want: Vec<u32> = (0..6)
+                    .filter(|&p| hits[p as usize] > 0 && !moving.contains(&p))
+                    .collect();
+                let im = image(hits, moving);
+                assert_eq!(trained_pixels(&im).collect::<Vec<_>>(), want);
+            }
+        }
+    }
+
+    /// The moving pixels of an image are those whose ray crosses a box of its own frame,
+    /// against a brute-force test of every pixel's ray, trimmed to the box's class where the
+    /// image has pseudo labels; a box of another frame marks none.
+    #[test]
+    fn moving_pixels_are_those_whose_ray_crosses_a_box_of_their_frame() {
+        use crate::geometry::{DVec3, DynamicBox, Interval, Primitive, Shape};
+        let cam = Camera {
+            width: 40,
+            height: 30,
+            fx: 30.0,
+            fy: 30.0,
+            cx: 20.0,
+            cy: 15.0,
+            lens: Lens::Pinhole,
+            cam_to_world: DAffine3::IDENTITY,
+        };
+        let n = (cam.width * cam.height) as usize;
+        let mut im = image(vec![1; n], Vec::new());
+        im.cam = cam.clone();
+        im.frame = 7;
+        let tf = DAffine3::from_scale_rotation_translation(
+            DVec3::new(1.5, 1.0, 2.0),
+            glam::DQuat::from_rotation_y(0.4),
+            DVec3::new(0.6, -0.3, 6.0),
+        );
+        let car = Primitive::new(Shape::Cuboid, tf, labels::CAR, 3).unwrap();
+        let boxes = |frame| {
+            vec![DynamicBox {
+                object: 26003,
+                frame,
+                primitive: car.clone(),
+            }]
+        };
+        let mut rays = ImageRays::new(
+            Vec::new(),
+            vec![im],
+            crate::intervals::IntersectParams::default(),
+        )
+        .unwrap();
+        rays.mark_moving(&boxes(7));
+        let mut buf: Vec<Interval> = Vec::new();
+        let want: Vec<u32> = (0..n as u32)
+            .filter(|&p| {
+                buf.clear();
+                let ray = cam.pixel_ray(p % cam.width, p / cam.width).unwrap();
+                car.intersect(&ray, &mut buf);
+                buf.iter().any(|i| i.t_out > 0.0)
+            })
+            .collect();
+        assert!(
+            want.len() > 50 && want.len() < n / 2,
+            "{} pixels",
+            want.len()
+        );
+        assert_eq!(rays.images[0].moving, want);
+        let kept: Vec<u32> = candidates(&rays, &[]);
+        assert_eq!(kept.len(), n - want.len());
+        assert!(kept.iter().all(|p| want.binary_search(p).is_err()));
+        // With pseudo labels: only where they call the pixel the box's class.
+        let labels: Vec<u8> = (0..n)
+            .map(|p| {
+                if p % 3 == 0 {
+                    labels::CAR
+                } else {
+                    labels::ROAD
+                }
+            })
+            .collect();
+        rays.images[0].targets.labels = Some(labels.clone());
+        rays.mark_moving(&boxes(7));
+        let cars: Vec<u32> = want
+            .iter()
+            .copied()
+            .filter(|&p| labels[p as usize] == labels::CAR)
+            .collect();
+        assert!(!cars.is_empty());
+        assert_eq!(rays.images[0].moving, cars);
+        rays.mark_moving(&boxes(8));
+        assert!(rays.images[0].moving.is_empty());
+    }
 }

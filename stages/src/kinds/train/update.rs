@@ -154,7 +154,7 @@ fn edited_rays(
         out.extend(
             pixels_meeting(&im.cam, changed, f64::INFINITY)
                 .into_iter()
-                .filter(|&px| im.hits[px as usize] > 0)
+                .filter(|&px| im.hits[px as usize] > 0 && im.moving.binary_search(&px).is_err())
                 .map(|px| im.first_ray + px),
         );
     }

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use arrow::datatypes::{Float64Type, UInt32Type, UInt8Type};
 
 use super::*;
-use crate::geometry::{cameras_from_table, primitives_from_table, Shape};
+use crate::geometry::{cameras_from_table, dynamic_boxes_from_table, primitives_from_table, Shape};
 use crate::kinds::kitti360_scene::Kitti360Scene;
 use crate::kinds::synthetic_scene::SyntheticScene;
 use crate::labels;
@@ -513,7 +513,11 @@ fn lidar_scans_project_into_the_left_camera() {
 
 /// Exports the default synthetic scene in the KITTI-360 layout and loads it back.
 fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
-    let sp = SceneParams::default();
+    // With its moving cars: their boxes go through the XML as dynamic objects.
+    let sp = SceneParams {
+        moving_objects: 3,
+        ..SceneParams::default()
+    };
     let synth = crate::scene::synthetic::in_memory::to_tables(
         &sp,
         crate::scene::synthetic::generate(&sp, &NoProgress).unwrap(),
@@ -651,6 +655,22 @@ fn the_exported_synthetic_scene_loads_back_into_equal_tables() {
     eprintln!("round trip: primitive transforms differ by at most {worst:.2e}; contains() agrees on {agree}/{total} random points");
     assert!(worst < 1e-9, "{worst}");
     assert_eq!(agree, total);
+
+    // The moving cars' boxes: the same (object, frame) rows and transforms.
+    let (da, db) = (
+        dynamic_boxes_from_table(&a["dynamic_boxes"]).unwrap(),
+        dynamic_boxes_from_table(&b["dynamic_boxes"]).unwrap(),
+    );
+    assert!(da.len() > 16, "{} moving boxes", da.len());
+    assert_eq!(da.len(), db.len());
+    for (x, y) in da.iter().zip(&db) {
+        assert_eq!((x.object, x.frame), (y.object, y.frame));
+        let (ma, mb) = (
+            x.primitive.to_world.to_cols_array(),
+            y.primitive.to_world.to_cols_array(),
+        );
+        assert!(ma.iter().zip(mb).all(|(u, v)| (u - v).abs() < 1e-9));
+    }
 }
 
 #[test]

@@ -12,20 +12,23 @@
 //!
 //! The builders, by what they place: `ground` (the cross-section's slabs and their stuff
 //! bounds), `lots` (frontages, garden fences, buildings or gardens, street trees and boxes along
-//! each side), `buildings`, `vegetation` (trees) and `vehicles` (parked cars, caravans,
-//! trailers), all over the part-and-bound `builder` and the shared `parts` (materials,
-//! transforms) and `section` (the strips' boundaries). Each side's lots and parking strip draw
+//! each side), `buildings`, `vegetation` (trees), `vehicles` (parked cars, caravans,
+//! trailers) and `movers` (cars driving along and across the street, placed per frame), all
+//! over the part-and-bound `builder` and the shared `parts` (materials, transforms) and
+//! `section` (the strips' boundaries). Each side's lots and parking strip draw
 //! from their own random stream, set here, so the order of the builders fixes every draw.
 
 mod builder;
 mod buildings;
 mod ground;
 mod lots;
+mod movers;
 mod parts;
 mod section;
 mod vegetation;
 mod vehicles;
 
+pub use movers::{Mover, MoverParams, MAX_MOVERS};
 pub use parts::{box_tf, hull_points, Material, Pattern};
 pub use section::{
     GARDEN_OUTER, GARDEN_TOP, KERB, PARKING_OUTER, RIG_Y, ROAD_HALF, SIDEWALK_OUTER, VERGE_OUTER,
@@ -47,6 +50,8 @@ pub struct Layout {
     pub materials: Vec<Material>,
     /// Coarse bounding primitives (the `primitives` table).
     pub bounds: Vec<Primitive>,
+    /// Moving objects (their boxes are the `dynamic_boxes` table).
+    pub movers: Vec<Mover>,
     /// Street extent along x (the stuff strips span it).
     pub x_range: (f64, f64),
     /// Amount of texture detail (`SceneParams::texture`).
@@ -64,11 +69,14 @@ pub struct LayoutParams {
     /// Amount of texture detail, 0..=1 (the rendering's, not the layout's: no random draw
     /// depends on it).
     pub texture: f64,
+    /// The moving objects and the frames they are placed for.
+    pub movers: MoverParams,
 }
 
 /// Builds the scene. Deterministic in `p`: the ground's parts, its stuff bounds, then each
 /// side's lots and parked vehicles, always in this order (the bounds' order is the
-/// `primitives` table's row order, and every bound draws from one jitter stream).
+/// `primitives` table's row order, and every bound draws from one jitter stream); the moving
+/// objects last, from streams of their own.
 pub fn build(p: &LayoutParams) -> Layout {
     let x0 = -30.0;
     let x1 = p.street_length + 70.0;
@@ -94,11 +102,13 @@ pub fn build(p: &LayoutParams) -> Layout {
         b.rng = Rng::new(p.seed, Purpose::Layout, &[20 + k as u64]);
         vehicles::parking_side(&mut b, side, x0, x1);
     }
+    let movers = movers::movers(&mut b, p.seed, &p.movers);
 
     Layout {
         parts: b.parts,
         materials: b.materials,
         bounds: b.bounds,
+        movers,
         x_range: (x0, x1),
         texture: p.texture,
     }

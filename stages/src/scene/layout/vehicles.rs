@@ -80,8 +80,8 @@ fn car_colour(r: &mut Rng) -> [f64; 3] {
     CAR_COLOURS[r.below(CAR_COLOURS.len() as u64) as usize]
 }
 
-/// A car: body, cabin, four wheels.
-fn vehicle_car(b: &mut Builder, pos: DVec3, len: f64, yaw: f64) {
+/// A car: body, cabin, four wheels; returns its instance number.
+pub(super) fn vehicle_car(b: &mut Builder, pos: DVec3, len: f64, yaw: f64) -> u32 {
     let inst = b.new_instance(CAR);
     let colour = car_colour(&mut b.rng);
     let width = b.rng.range(1.7, 1.9);
@@ -116,6 +116,7 @@ fn vehicle_car(b: &mut Builder, pos: DVec3, len: f64, yaw: f64) {
     }
     let below = at(DVec3::new(0.0, 0.0, -0.12));
     b.bound(from, &[below], yaw, 0.08, 0.1, BoundShape::Box, CAR, inst);
+    inst
 }
 
 /// A caravan or trailer: a box body on two wheels with a drawbar.

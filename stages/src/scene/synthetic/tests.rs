@@ -10,7 +10,9 @@ use super::in_memory::to_tables;
 use super::*;
 use crate::geometry::Primitive;
 use crate::kinds::synthetic_scene::SyntheticScene;
-use crate::labels::{BUILDING, CAR, PARKING, SIDEWALK, VEGETATION};
+use crate::labels::{
+    BUILDING, CAR, PAPER_CLASSES, PARKING, ROAD, SIDEWALK, SKY, TERRAIN, VEGETATION,
+};
 use crate::{NoProgress, Stage};
 
 /// The default scene, generated once for all tests (and timed).
@@ -577,7 +579,7 @@ fn exported_meshes_match_the_primitives() {
     use crate::geometry::Shape;
     use crate::scene::kitti360_export::local_mesh;
     let (_, g) = default_scene();
-    let mut r = rng::Rng::new(9, rng::Purpose::Layout, &[]);
+    let mut r = crate::scene::rng::Rng::new(9, crate::scene::rng::Purpose::Layout, &[]);
     for (i, p) in g.layout.bounds.iter().enumerate() {
         let (v, f) = local_mesh(&p.shape);
         let m = Primitive::new(
@@ -766,6 +768,7 @@ fn supersampled_colour_is_the_mean_over_a_finer_grid_and_labels_stay_the_centre_
     };
     let layout = layout::build(&p.layout_params().unwrap());
     let bvh = crate::geometry::Bvh::build(&layout.parts);
+    let world = tracer::World::at(&layout, &bvh, p.first_frame);
     let cam = rig(&p, p.first_frame)[0].clone();
     let fine = crate::geometry::Camera {
         width: cam.width * 3,
@@ -779,15 +782,9 @@ fn supersampled_colour_is_the_mean_over_a_finer_grid_and_labels_stay_the_centre_
     let (mut mixed, mut moved, mut knife_edges) = (0, 0, 0);
     for y in 0..cam.height {
         for x in 0..cam.width {
-            let centre = tracer::trace(&layout, &bvh, &cam.pixel_ray(x, y).unwrap());
-            let got = tracer::pixel_radiance(
-                &layout,
-                &bvh,
-                &cam,
-                (x as usize, y as usize),
-                3,
-                centre.radiance,
-            );
+            let centre = tracer::trace(&world, &cam.pixel_ray(x, y).unwrap());
+            let got =
+                tracer::pixel_radiance(&world, &cam, (x as usize, y as usize), 3, centre.radiance);
             let mut want = [0.0; 3];
             let mut classes = std::collections::BTreeSet::new();
             for j in 0..3 {
@@ -798,7 +795,7 @@ fn supersampled_colour_is_the_mean_over_a_finer_grid_and_labels_stay_the_centre_
                         y as f64 + (j as f64 + 0.5) / 3.0,
                     );
                     assert!((cam.ray(u, v).unwrap().dir - ray.dir).length() < 1e-12);
-                    let s = tracer::trace(&layout, &bvh, &ray);
+                    let s = tracer::trace(&world, &ray);
                     classes.insert(s.label);
                     for (w, r) in want.iter_mut().zip(s.radiance) {
                         *w += r / 9.0;
@@ -843,3 +840,5 @@ fn supersampled_colour_is_the_mean_over_a_finer_grid_and_labels_stay_the_centre_
         assert_ne!(a.rgb, b.rgb);
     }
 }
+
+mod movers;

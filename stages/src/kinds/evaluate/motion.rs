@@ -1,0 +1,273 @@
+//! Static and moving pixels scored apart, where the scene has moving objects (its
+//! `dynamic_boxes`): the moving part is the pixels whose ray meets a moving object's box at the
+//! image's frame (the object and what is seen around it through its coarse box), the static
+//! part the rest. Each part is the whole evaluation with the other part's GT made void (labels
+//! and instances 0, no depth reference), so its mIoU, PQ and depth count only its own pixels,
+//! as masked evaluations do. Within the boxes' outlines a method must tell the object from
+//! what is around it: labelling the whole box (the box projection) scores low there.
+
+use std::collections::BTreeMap;
+
+use super::sums::{FrameMaps, Group};
+use super::EvaluateParams;
+use crate::geometry::{changes::pixels_meeting, Bvh, Camera, DynamicBox, Primitive};
+use crate::{labels, Result};
+
+/// The parts, as the `motion_metrics` table names them.
+pub const PARTS: [&str; 2] = ["static", "moving"];
+
+/// The scene's moving objects: their boxes per frame.
+#[derive(Default)]
+pub(super) struct MovingObjects {
+    by_frame: BTreeMap<u32, (Vec<Primitive>, Bvh)>,
+}
+
+impl MovingObjects {
+    pub(super) fn new(boxes: Vec<DynamicBox>) -> Self {
+        let mut frames: BTreeMap<u32, Vec<Primitive>> = BTreeMap::new();
+        for b in boxes {
+            frames.entry(b.frame).or_default().push(b.primitive);
+        }
+        let by_frame = frames
+            .into_iter()
+            .map(|(f, prims)| {
+                let bvh = Bvh::build(&prims);
+                (f, (prims, bvh))
+            })
+            .collect();
+        Self { by_frame }
+    }
+
+    pub(super) fn is_empty(&self) -> bool {
+        self.by_frame.is_empty()
+    }
+
+    /// The boxes at `frame` and their hierarchy (none: empty).
+    pub(super) fn at(&self, frame: u32) -> (&[Primitive], Option<&Bvh>) {
+        self.by_frame
+            .get(&frame)
+            .map_or((&[][..], None), |(p, b)| (&p[..], Some(b)))
+    }
+
+    /// Per pixel of `cam` at `frame`: its ray meets a moving object's box.
+    pub(super) fn mask(&self, cam: &Camera, frame: u32) -> Vec<bool> {
+        let mut mask = vec![false; (cam.width * cam.height) as usize];
+        let (boxes, _) = self.at(frame);
+        for p in pixels_meeting(cam, boxes, f64::INFINITY) {
+            mask[p as usize] = true;
+        }
+        mask
+    }
+}
+
+/// The static and the moving part's accumulators.
+pub(super) struct MotionGroups {
+    pub(super) parts: [Group; 2],
+}
+
+impl MotionGroups {
+    pub(super) fn new(p: &EvaluateParams) -> Result<Self> {
+        Ok(Self {
+            parts: [Group::new(p)?, Group::new(p)?],
+        })
+    }
+
+    /// One evaluated image, each part with the other's GT void.
+    pub(super) fn add(&mut self, f: &FrameMaps, moving: &[bool]) -> Result<()> {
+        for (k, group) in self.parts.iter_mut().enumerate() {
+            let keep = |i: usize| moving[i] == (k == 1);
+            let gsem: Vec<u8> = (0..f.gsem.len())
+                .map(|i| {
+                    if keep(i) {
+                        f.gsem[i]
+                    } else {
+                        labels::UNLABELED
+                    }
+                })
+                .collect();
+            let ginst: Vec<u16> = (0..f.ginst.len())
+                .map(|i| if keep(i) { f.ginst[i] } else { 0 })
+                .collect();
+            let depth = |d: &[f32]| -> Vec<f32> {
+                d.iter()
+                    .enumerate()
+                    .map(|(i, &v)| if keep(i) { v } else { 0.0 })
+                    .collect()
+            };
+            let (lidar, exact) = (f.lidar.map(depth), f.exact.map(depth));
+            group.add(&FrameMaps {
+                gsem: &gsem,
+                ginst: &ginst,
+                ours: f.ours,
+                ours_inst: f.ours_inst,
+                fixed: f.fixed,
+                depth: f.depth,
+                fp_sem: f.fp_sem.clone(),
+                fp_inst: f.fp_inst.clone(),
+                pseudo: f.pseudo,
+                lidar: lidar.as_deref(),
+                exact: exact.as_deref(),
+                boundary: f.boundary.clone(),
+            })?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use arrow::array::{Array, Float64Array};
+    use arrow::datatypes::{Float32Type, UInt16Type, UInt8Type};
+
+    use std::collections::HashSet;
+
+    use super::*;
+    use crate::kinds::evaluate::Evaluate;
+    use crate::scene::synthetic::{generate, in_memory::to_tables, SceneParams};
+    use crate::{tables, MemoryInputs, NoProgress, Stage, Tables};
+
+    /// `label_maps` that copy the scene's GT, with `moving_as` (if any) on the pixels of the
+    /// moving `objects` (their values in the instance maps).
+    fn label_maps(scene: &Tables, objects: &HashSet<u16>, moving_as: Option<u8>) -> Tables {
+        let gs = &scene["gt_semantic"];
+        let gi = &scene["gt_instance"];
+        let gd = &scene["gt_depth"];
+        let sem = tables::get_list::<UInt8Type>(gs, "gt_semantic", "labels").unwrap();
+        let inst = tables::get_list::<UInt16Type>(gi, "gt_instance", "instances").unwrap();
+        let depth = tables::get_list::<Float32Type>(gd, "gt_depth", "depth").unwrap();
+        let n = gs.num_rows();
+        let mut semantic = Vec::new();
+        for r in 0..n {
+            let mut s = sem.row(r).to_vec();
+            if let Some(l) = moving_as {
+                for (v, i) in s.iter_mut().zip(inst.row(r)) {
+                    if objects.contains(i) {
+                        *v = l;
+                    }
+                }
+            }
+            semantic.push(s);
+        }
+        let col = |name: &str| gs.column_by_name(name).unwrap().clone();
+        let batch = tables::build(
+            "label_maps",
+            vec![
+                tables::strings(vec!["seq"; n]),
+                col("frame"),
+                col("camera"),
+                col("width"),
+                col("height"),
+                tables::list::<UInt8Type>(semantic),
+                tables::list::<UInt8Type>((0..n).map(|r| sem.row(r).to_vec())),
+                tables::list::<UInt16Type>((0..n).map(|r| inst.row(r).to_vec())),
+                tables::list::<Float32Type>((0..n).map(|r| depth.row(r).to_vec())),
+                tables::list::<Float32Type>((0..n).map(|r| vec![1.0; sem.row(r).len()])),
+                tables::binary((0..n).map(|_| Vec::<u8>::new())),
+            ],
+        )
+        .unwrap();
+        Tables::from([("label_maps".to_string(), batch)])
+    }
+
+    /// `(part, method, metric)` of `motion_metrics`.
+    fn value(t: &Tables, part: &str, method: &str, metric: &str) -> Option<f64> {
+        let m = &t["motion_metrics"];
+        let col = |c| tables::get_strings(m, "motion_metrics", c).unwrap();
+        let (parts, methods, metrics) = (col("part"), col("method"), col("metric"));
+        let values = m["value"].as_any().downcast_ref::<Float64Array>().unwrap();
+        (0..m.num_rows())
+            .find(|&i| {
+                (parts.value(i), methods.value(i), metrics.value(i)) == (part, method, metric)
+            })
+            .and_then(|i| values.is_valid(i).then(|| values.value(i)))
+    }
+
+    fn evaluate(scene: &Tables, render: Tables) -> Tables {
+        let s = Evaluate;
+        let v = Stage::canonical_params(&s, &serde_json::json!({})).unwrap();
+        let mem = MemoryInputs::new([("scene", scene.clone()), ("render", render)]);
+        Stage::run(&s, &v, &mem.inputs(), &NoProgress).unwrap()
+    }
+
+    #[test]
+    fn moving_and_static_pixels_are_scored_apart() {
+        let p = SceneParams {
+            frames: 6,
+            moving_objects: 3,
+            ..SceneParams::default()
+        };
+        let scene = to_tables(&p, generate(&p, &NoProgress).unwrap()).unwrap();
+        let boxes = crate::geometry::dynamic_boxes_from_table(&scene["dynamic_boxes"]).unwrap();
+        let objects: HashSet<u16> = boxes.iter().map(|b| b.object as u16).collect();
+
+        // GT as the labels: every part perfect.
+        let exact = evaluate(&scene, label_maps(&scene, &objects, None));
+        for part in PARTS {
+            assert_eq!(
+                value(&exact, part, "panoptic_nerf", "miou"),
+                Some(1.0),
+                "{part}"
+            );
+            assert_eq!(
+                value(&exact, part, "panoptic_nerf", "pq"),
+                Some(1.0),
+                "{part}"
+            );
+        }
+        // The moving cars labelled road: the moving part (the boxes' outlines) fails, the
+        // static part is untouched (its GT is void there), the whole in between.
+        let wrong = evaluate(&scene, label_maps(&scene, &objects, Some(labels::ROAD)));
+        let acc = value(&wrong, "moving", "panoptic_nerf", "acc").unwrap();
+        assert!(acc < 0.75, "{acc}");
+        let miou = value(&wrong, "moving", "panoptic_nerf", "miou").unwrap();
+        assert!(miou < 0.9, "{miou}");
+        assert_eq!(value(&wrong, "static", "panoptic_nerf", "miou"), Some(1.0));
+        let all = |t: &Tables, method: &str, metric: &str| {
+            let m = &t["metrics"];
+            let methods = tables::get_strings(m, "metrics", "method").unwrap();
+            let metrics = tables::get_strings(m, "metrics", "metric").unwrap();
+            let values = m["value"].as_any().downcast_ref::<Float64Array>().unwrap();
+            (0..m.num_rows())
+                .find(|&i| (methods.value(i), metrics.value(i)) == (method, metric))
+                .map(|i| values.value(i))
+                .unwrap()
+        };
+        let whole = all(&wrong, "panoptic_nerf", "miou");
+        assert!(whole > 0.5 && whole < 1.0, "{whole}");
+        // Pixels of the two parts add up to the whole.
+        let px = |part| value(&wrong, part, "panoptic_nerf", "pixels").unwrap();
+        assert_eq!(
+            px("static") + px("moving"),
+            all(&wrong, "panoptic_nerf", "pixels")
+        );
+        assert!(px("moving") > 100.0, "{} moving pixels", px("moving"));
+
+        // The box projection labels the boxes' outlines whole: right on the object, wrong
+        // around it; without the moving boxes the object's pixels would be whatever static box
+        // or sky lies behind.
+        let fp = value(&wrong, "moving", "first_primitive", "acc").unwrap();
+        let mut still = scene.clone();
+        still.insert(
+            "dynamic_boxes".into(),
+            crate::geometry::dynamic_boxes_to_table(&[]).unwrap(),
+        );
+        assert!(
+            fp > 0.3 && fp < 0.95,
+            "box projection on moving pixels: {fp}"
+        );
+        let none = evaluate(&still, label_maps(&scene, &objects, None));
+        assert_eq!(
+            none["motion_metrics"].num_rows(),
+            0,
+            "no moving objects, no split"
+        );
+        let (with, without) = (
+            all(&wrong, "first_primitive", "acc"),
+            all(&none, "first_primitive", "acc"),
+        );
+        assert!(
+            with > without,
+            "box projection {with} with the moving boxes, {without} without"
+        );
+    }
+}

@@ -1,0 +1,149 @@
+//! Moving objects: cars driving along the street and across it. Each is built once in its own
+//! frame (x forward, y left, z up, origin on the ground under its centre) with its parts and the
+//! annotator's box, and placed at every frame of its span by a pose: a straight drive at
+//! constant speed, as KITTI-360 annotates moving objects (one box per object and frame).
+
+use std::ops::RangeInclusive;
+
+use crate::geometry::{DAffine3, DMat3, DVec3, Primitive};
+use crate::labels::{CAR, INSTANCE_FACTOR};
+use crate::scene::rng::{Purpose, Rng};
+
+use super::builder::Builder;
+use super::parts::Material;
+use super::section::RIG_Y;
+
+/// The most moving objects the street has: a car ahead in the rig's lane, an oncoming car, a
+/// car crossing the road.
+pub const MAX_MOVERS: u32 = 3;
+
+/// Which frames the movers are placed for: the rendered window and the rig's speed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MoverParams {
+    /// How many (0..=[`MAX_MOVERS`]), in the order above.
+    pub count: u32,
+    pub first_frame: u32,
+    pub frames: u32,
+    /// The rig's x advance per frame (frame k is at x = k * spacing).
+    pub frame_spacing: f64,
+}
+
+/// One moving object.
+pub struct Mover {
+    pub label: u8,
+    pub instance: u32,
+    /// True geometry in the mover's own frame.
+    pub parts: Vec<Primitive>,
+    /// `materials[i]` is the look of `parts[i]`.
+    pub materials: Vec<Material>,
+    /// The annotator's box in the mover's own frame.
+    pub bound: Primitive,
+    /// Ground position at frame `*frames.start()`.
+    start: DVec3,
+    /// Heading (about z) and distance driven per frame along it.
+    yaw: f64,
+    step: f64,
+    /// The frames it is in the scene.
+    pub frames: RangeInclusive<u32>,
+}
+
+impl Mover {
+    /// Its value in the instance maps (and `object` of `dynamic_boxes`).
+    pub fn object(&self) -> u32 {
+        self.label as u32 * INSTANCE_FACTOR + self.instance
+    }
+
+    /// Own frame -> scene frame at `frame` (`None` outside its span).
+    pub fn pose(&self, frame: u32) -> Option<DAffine3> {
+        if !self.frames.contains(&frame) {
+            return None;
+        }
+        let rot = DMat3::from_rotation_z(self.yaw);
+        let driven = self.step * (frame - self.frames.start()) as f64;
+        Some(DAffine3::from_mat3_translation(
+            rot,
+            self.start + rot * DVec3::new(driven, 0.0, 0.0),
+        ))
+    }
+
+    /// Its parts placed at `frame` (none outside its span).
+    pub fn parts_at(&self, frame: u32) -> Vec<Primitive> {
+        self.pose(frame)
+            .map(|tf| self.parts.iter().map(|p| placed(p, &tf)).collect())
+            .unwrap_or_default()
+    }
+
+    /// Its box placed at `frame`.
+    pub fn bound_at(&self, frame: u32) -> Option<Primitive> {
+        self.pose(frame).map(|tf| placed(&self.bound, &tf))
+    }
+}
+
+/// `p` moved by `tf` (a rigid motion keeps every shape valid).
+fn placed(p: &Primitive, tf: &DAffine3) -> Primitive {
+    Primitive::new(p.shape.clone(), *tf * p.to_world, p.label, p.instance)
+        .expect("a rigid motion of a valid primitive is valid")
+}
+
+/// The movers of `m`, built after the static street (their instance numbers follow its), each
+/// from random streams of its own so the static street is the same with or without them.
+pub(super) fn movers(b: &mut Builder, seed: u64, m: &MoverParams) -> Vec<Mover> {
+    let n = m.frames.max(1);
+    let last = m.first_frame + n - 1;
+    let rig_x = |f: f64| f * m.frame_spacing;
+    let at = |share: f64| m.first_frame as f64 + share * (n - 1) as f64;
+    let mut out = Vec::new();
+    for k in 0..m.count.min(MAX_MOVERS) {
+        b.rng = Rng::new(seed, Purpose::Layout, &[30 + k as u64]);
+        b.brng = Rng::new(seed, Purpose::Bounds, &[30 + k as u64]);
+        let (start, yaw, step, frames) = match k {
+            // Ahead in the rig's lane, a little faster than the rig.
+            0 => {
+                let x = rig_x(m.first_frame as f64) + b.rng.range(8.0, 11.0);
+                let step = m.frame_spacing * b.rng.range(1.08, 1.2);
+                (DVec3::new(x, RIG_Y, 0.0), 0.0, step, m.first_frame..=last)
+            }
+            // Oncoming in the other lane, passing the rig two thirds into the window.
+            1 => {
+                let step = b.rng.range(0.9, 1.2);
+                let pass = at(2.0 / 3.0);
+                let x = rig_x(pass) + step * (pass - m.first_frame as f64);
+                let y = -RIG_Y + b.rng.range(-0.2, 0.2);
+                let yaw = std::f64::consts::PI;
+                (DVec3::new(x, y, 0.0), yaw, step, m.first_frame..=last)
+            }
+            // Crossing the road well ahead of the rig, on the road only (|y| <= 3 m).
+            _ => {
+                let step = b.rng.range(0.25, 0.35);
+                let mid = at(1.0 / 3.0).round();
+                let x = rig_x(mid) + b.rng.range(12.0, 15.0);
+                let half = (3.0 / step).floor() as u32;
+                let first = (mid as u32).saturating_sub(half).max(m.first_frame);
+                let end = (mid as u32 + half).min(last);
+                let y = -step * (mid - first as f64);
+                let yaw = std::f64::consts::FRAC_PI_2;
+                (DVec3::new(x, y, 0.0), yaw, step, first..=end)
+            }
+        };
+        let (from_part, from_bound) = (b.parts.len(), b.bounds.len());
+        let len = b.rng.range(3.9, 4.7);
+        let instance = super::vehicles::vehicle_car(b, DVec3::ZERO, len, 0.0);
+        let bound = b
+            .bounds
+            .drain(from_bound..)
+            .next()
+            .expect("a car has a box");
+        out.push(Mover {
+            label: CAR,
+            instance,
+            parts: b.parts.drain(from_part..).collect(),
+            materials: b.materials.drain(from_part..).collect(),
+            bound,
+            start,
+            yaw,
+            step,
+            frames,
+        });
+    }
+    out
+}
