@@ -219,6 +219,20 @@ fn a_changed_pose_or_a_missing_parent_computes_from_scratch_and_says_why() {
     ws.run_ok(&["--set", EDIT, "--set", "scene.camera_height_m=1.6"]);
     let (outcome, why) = last(&ws, "rays");
     assert_eq!(outcome, Outcome::Updated, "{why}");
+
+    // The key the last run read holds other bytes than it read (a forced run of a stage that
+    // is not deterministic, on a GPU say, wrote it again): not a parent, from scratch.
+    let mut rec: serde_json::Value = serde_json::from_slice(&fs::read(&record).unwrap()).unwrap();
+    rec["inputs"]["scene"]["digest"] = serde_json::json!("f".repeat(64));
+    fs::write(&record, serde_json::to_vec(&rec).unwrap()).unwrap();
+    let other = "scene.edits=[{primitive: 57, scale: [1.3, 1.3, 1.3]}]";
+    ws.run_ok(&["--set", other, "--set", "scene.camera_height_m=1.6"]);
+    let (outcome, why) = last(&ws, "rays");
+    assert_eq!(outcome, Outcome::Ran, "{why}");
+    assert!(
+        why.contains("the input `scene` of its last run was computed again since"),
+        "{why}"
+    );
 }
 
 /// The edit a team makes by hand: the box moved in the `data_3d_bboxes` XML and saved. The

@@ -163,9 +163,14 @@ pub fn find_parent(
             // The entry as the last run read it (a forced run may since have written other
             // bytes under the same key: nondeterministic on a GPU, or code changed in place).
             Entry::Valid(m) if &m.output_digest == read => m,
-            // Gone (collected, say), but an entry with the same bytes serves as well.
-            _ => same_bytes(store, read)
-                .ok_or_else(|| gone(&format!("the input `{slot}` of its last run")))?,
+            // Gone (collected, say) or rewritten, but an entry with the same bytes serves.
+            found => same_bytes(store, read).ok_or_else(|| match found {
+                Entry::Valid(_) => Some(format!(
+                    "the input `{slot}` of its last run was computed again since, with other \
+                     bytes"
+                )),
+                _ => gone(&format!("the input `{slot}` of its last run")),
+            })?,
         };
         let new = current(slot).ok_or_else(|| Some(format!("input `{slot}` has no entry")))?;
         debug_assert_eq!(Some(&new.key), info.key.as_ref());
