@@ -238,10 +238,9 @@ impl<'a> World<'a> {
     /// The street at `frame`.
     pub fn at(layout: &'a Layout, bvh: &'a Bvh, frame: u32) -> Self {
         let (mut moving, mut moving_materials) = (Vec::new(), Vec::new());
-        for m in &layout.movers {
-            let parts = m.parts_at(frame);
-            moving_materials.extend(m.materials.iter().take(parts.len()).copied());
-            moving.extend(parts);
+        for m in layout.movers.iter().filter(|m| m.frames.contains(&frame)) {
+            moving.extend(m.parts_at(frame));
+            moving_materials.extend_from_slice(&m.materials);
         }
         let moving_bvh = Bvh::build(&moving);
         Self {
