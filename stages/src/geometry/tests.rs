@@ -286,6 +286,51 @@ proptest! {
     }
 }
 
+/// Two sets at once (a static scene and the moving objects at a frame) give the first hit of
+/// their union: its entry, and the set it belongs to.
+#[test]
+fn first_hit_of_two_sets_is_the_first_hit_of_their_union() {
+    let (mut hits, mut second) = (0, 0);
+    for seed in 0..8u64 {
+        let a = random_scene(60, 30.0, 5.0, seed);
+        let b = random_scene(6, 20.0, 4.0, seed ^ 0x5eed);
+        let union: Vec<Primitive> = a.iter().chain(&b).cloned().collect();
+        let (ba, bb, bu) = (Bvh::build(&a), Bvh::build(&b), Bvh::build(&union));
+        let mut rng = Rng::new(seed);
+        for _ in 0..300 {
+            let o = DVec3::new(
+                rng.range(-25.0, 25.0),
+                rng.range(-25.0, 25.0),
+                rng.range(-25.0, 25.0),
+            );
+            let target = union[rng.below(union.len())].aabb().centre();
+            let r = Ray::new(o, target + rng.unit() * rng.range(0.0, 2.0) - o);
+            let want = bu.first_hit(&union, &r, 0.0, 100.0);
+            let got = Bvh::first_hit_of_two((&ba, &a), (&bb, &b), &r, 0.0, 100.0);
+            match (want, got) {
+                (None, None) => {}
+                (Some(w), Some((g, in_b))) => {
+                    hits += 1;
+                    second += usize::from(in_b);
+                    assert_eq!(w.t_in.max(0.0), g.t_in.max(0.0), "seed {seed} ray {r:?}");
+                    let picked = if in_b {
+                        &b[g.prim as usize]
+                    } else {
+                        &a[g.prim as usize]
+                    };
+                    let first = &union[w.prim as usize];
+                    assert_eq!(picked.to_world, first.to_world, "seed {seed} ray {r:?}");
+                }
+                (w, g) => panic!("seed {seed} ray {r:?}: union {w:?}, two sets {g:?}"),
+            }
+        }
+    }
+    assert!(
+        hits > 500 && second > 50,
+        "{hits} hits, {second} in the second set"
+    );
+}
+
 #[test]
 fn bvh_of_many_coincident_primitives_is_valid() {
     let prims: Vec<Primitive> = (0..100)

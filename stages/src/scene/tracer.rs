@@ -259,20 +259,18 @@ impl<'a> World<'a> {
         t_min: f64,
         t_max: f64,
     ) -> Option<(Hit, &Primitive, &Material)> {
-        let still = self.bvh.first_hit(&self.layout.parts, ray, t_min, t_max);
-        let end = still.as_ref().map_or(t_max, |h| h.t_in.max(t_min));
-        if let Some(h) = self.moving_bvh.first_hit(&self.moving, ray, t_min, end) {
-            if still
-                .as_ref()
-                .is_none_or(|s| h.t_in.max(t_min) < s.t_in.max(t_min))
-            {
-                let k = h.prim as usize;
-                return Some((h, &self.moving[k], &self.moving_materials[k]));
-            }
-        }
-        still.map(|h| {
-            let k = h.prim as usize;
-            (h, &self.layout.parts[k], &self.layout.materials[k])
+        let (hit, moving) = Bvh::first_hit_of_two(
+            (self.bvh, &self.layout.parts),
+            (&self.moving_bvh, &self.moving),
+            ray,
+            t_min,
+            t_max,
+        )?;
+        let k = hit.prim as usize;
+        Some(if moving {
+            (hit, &self.moving[k], &self.moving_materials[k])
+        } else {
+            (hit, &self.layout.parts[k], &self.layout.materials[k])
         })
     }
 }

@@ -82,6 +82,30 @@ impl Bvh {
         out.sort_unstable_by(hit_order);
     }
 
+    /// [`Bvh::first_hit`] over two primitive sets at once (a static scene and the moving
+    /// objects at one frame, each with its hierarchy): the nearer hit and whether it is the
+    /// second set's (the first set's on a tie).
+    pub fn first_hit_of_two(
+        (a, a_prims): (&Bvh, &[Primitive]),
+        (b, b_prims): (&Bvh, &[Primitive]),
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+    ) -> Option<(Hit, bool)> {
+        let first = a.first_hit(a_prims, ray, t_min, t_max);
+        let end = first.as_ref().map_or(t_max, |h| h.t_in.max(t_min));
+        match b.first_hit(b_prims, ray, t_min, end) {
+            Some(h)
+                if first
+                    .as_ref()
+                    .is_none_or(|f| h.t_in.max(t_min) < f.t_in.max(t_min)) =>
+            {
+                Some((h, true))
+            }
+            _ => first.map(|h| (h, false)),
+        }
+    }
+
     /// The hit with the smallest clipped entry `max(t_in, t_min)` in `[t_min, t_max]` (ties by
     /// primitive id), i.e. the first element [`Bvh::intersect_all`] would return. Children are
     /// visited near-first and skipped when their box starts beyond the best hit so far.

@@ -52,7 +52,7 @@ pub fn first_primitive_maps(
     cam: &geometry::Camera,
     prims: &[Primitive],
     bvh: &Bvh,
-    moving: (&[Primitive], Option<&Bvh>),
+    moving: (&[Primitive], &Bvh),
 ) -> (Vec<u8>, Vec<u16>) {
     let n = (cam.width * cam.height) as usize;
     let mut sem = vec![labels::SKY; n];
@@ -67,17 +67,11 @@ pub fn first_primitive_maps(
                 *ins = 0;
                 return;
             };
-            let still = bvh
-                .first_hit(prims, &ray, 0.0, f64::INFINITY)
-                .map(|h| (h.t_in.max(0.0), &prims[h.prim as usize]));
-            let end = still.map_or(f64::INFINITY, |(t, _)| t);
-            let moved = moving.1.and_then(|b| b.first_hit(moving.0, &ray, 0.0, end));
-            let first = match moved {
-                Some(h) if still.is_none_or(|(t, _)| h.t_in.max(0.0) < t) => {
-                    Some(&moving.0[h.prim as usize])
-                }
-                _ => still.map(|(_, p)| p),
-            };
+            let first =
+                Bvh::first_hit_of_two((bvh, prims), (moving.1, moving.0), &ray, 0.0, f64::INFINITY)
+                    .map(|(h, is_moving)| {
+                        &(if is_moving { moving.0 } else { prims })[h.prim as usize]
+                    });
             if let Some(p) = first {
                 *s = p.label;
                 *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;

@@ -20,6 +20,8 @@ pub const PARTS: [&str; 2] = ["static", "moving"];
 #[derive(Default)]
 pub(super) struct MovingObjects {
     by_frame: BTreeMap<u32, (Vec<Primitive>, Bvh)>,
+    /// The hierarchy of no box.
+    none: Bvh,
 }
 
 impl MovingObjects {
@@ -35,18 +37,21 @@ impl MovingObjects {
                 (f, (prims, bvh))
             })
             .collect();
-        Self { by_frame }
+        Self {
+            by_frame,
+            none: Bvh::default(),
+        }
     }
 
     pub(super) fn is_empty(&self) -> bool {
         self.by_frame.is_empty()
     }
 
-    /// The boxes at `frame` and their hierarchy (none: empty).
-    pub(super) fn at(&self, frame: u32) -> (&[Primitive], Option<&Bvh>) {
+    /// The boxes at `frame` and their hierarchy (empty where none is).
+    pub(super) fn at(&self, frame: u32) -> (&[Primitive], &Bvh) {
         self.by_frame
             .get(&frame)
-            .map_or((&[][..], None), |(p, b)| (&p[..], Some(b)))
+            .map_or((&[][..], &self.none), |(p, b)| (&p[..], b))
     }
 
     /// Per pixel of `cam` at `frame`: its ray meets a moving object's box.
