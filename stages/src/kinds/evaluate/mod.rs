@@ -246,16 +246,17 @@ impl Evaluation {
             .transpose()?;
         let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh, self.moving.at(c.frame));
         let gsem = map_u8(g, "gt_semantic", "labels")?;
+        let boundary = labels::label_edges(gsem, g.width);
         let f = FrameMaps {
-            boundary: labels::label_edges(gsem, g.width),
+            boundary: &boundary,
             gsem,
             ginst: map_u16(gi, "gt_instance", "instances")?,
             ours: map_u8(m, "label_maps", "semantic")?,
             ours_inst: map_u16(m, "label_maps", "instance")?,
             fixed: map_u8(m, "label_maps", "fixed_semantic")?,
             depth: map_f32(m, "label_maps", "depth")?,
-            fp_sem,
-            fp_inst,
+            fp_sem: &fp_sem,
+            fp_inst: &fp_inst,
             pseudo,
             lidar: lidar.as_deref(),
             exact: exact_row
@@ -291,7 +292,7 @@ impl Evaluation {
         for (method, labels) in [
             ("panoptic_nerf", Some(f.ours)),
             ("fixed_field", Some(f.fixed)),
-            ("first_primitive", Some(&f.fp_sem[..])),
+            ("first_primitive", Some(f.fp_sem)),
             ("pseudo_labels", f.pseudo),
         ] {
             if let Some(l) = labels {

@@ -107,12 +107,12 @@ impl MotionGroups {
                 ours_inst: f.ours_inst,
                 fixed: f.fixed,
                 depth: f.depth,
-                fp_sem: f.fp_sem.clone(),
-                fp_inst: f.fp_inst.clone(),
+                fp_sem: f.fp_sem,
+                fp_inst: f.fp_inst,
                 pseudo: f.pseudo,
                 lidar: lidar.as_deref(),
                 exact: exact.as_deref(),
-                boundary: f.boundary.clone(),
+                boundary: f.boundary,
             })?;
         }
         Ok(())

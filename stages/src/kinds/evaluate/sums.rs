@@ -221,7 +221,7 @@ impl Group {
         s.confusion.add(f.gsem, f.ours)?;
         s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
         if let Some(l) = f.lidar {
-            let interior = off_boundary(l, &f.boundary);
+            let interior = off_boundary(l, f.boundary);
             s.depth.as_mut().unwrap().add(f.depth, l)?;
             s.depth_interior.as_mut().unwrap().add(f.depth, &interior)?;
             if let Some(exact) = f.exact {
@@ -234,13 +234,13 @@ impl Group {
             s.depth_exact_interior
                 .as_mut()
                 .unwrap()
-                .add(f.depth, &off_boundary(exact, &f.boundary))?;
+                .add(f.depth, &off_boundary(exact, f.boundary))?;
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
         let s = self.sums.get_mut("first_primitive").unwrap();
-        s.confusion.add(f.gsem, &f.fp_sem)?;
-        s.add_panoptic(f.gsem, f.ginst, &f.fp_sem, &f.fp_inst)?;
+        s.confusion.add(f.gsem, f.fp_sem)?;
+        s.add_panoptic(f.gsem, f.ginst, f.fp_sem, f.fp_inst)?;
         if let Some(ps) = f.pseudo {
             let s = self.sums.get_mut("pseudo_labels").unwrap();
             s.confusion.add(f.gsem, ps)?;
@@ -359,14 +359,14 @@ pub(super) struct FrameMaps<'a> {
     pub(super) ours_inst: &'a [u16],
     pub(super) fixed: &'a [u8],
     pub(super) depth: &'a [f32],
-    pub(super) fp_sem: Vec<u8>,
-    pub(super) fp_inst: Vec<u16>,
+    pub(super) fp_sem: &'a [u8],
+    pub(super) fp_inst: &'a [u16],
     pub(super) pseudo: Option<&'a [u8]>,
     pub(super) lidar: Option<&'a [f32]>,
     /// The scene's exact depth (z-depth as ours', 0 = none), where the scene has one.
     pub(super) exact: Option<&'a [f32]>,
     /// Per pixel: on a GT class boundary ([`crate::labels::label_edges`]).
-    pub(super) boundary: Vec<bool>,
+    pub(super) boundary: &'a [bool],
 }
 
 /// Rows of the `metrics` table (no group), or of `camera_metrics` or `motion_metrics`.
