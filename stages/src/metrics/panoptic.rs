@@ -28,6 +28,7 @@
 use std::{
     collections::{HashMap, HashSet},
     fmt,
+    hash::Hash,
 };
 
 use super::confusion::{mean, ConfusionMatrix};
@@ -168,6 +169,29 @@ fn key_class(key: u32) -> u8 {
 /// GT pixels that are void (no segment) in the matching.
 const VOID: u32 = u32::MAX;
 
+/// Adds one to `counts[key]` per `Some(key)`, a run of equal items at a time: label maps are
+/// runs of equal values along a row, so this hashes once per run, not once per pixel.
+fn count_runs<K: Copy + Eq + Hash>(
+    items: impl Iterator<Item = Option<K>>,
+    counts: &mut HashMap<K, u64>,
+) {
+    let mut run: Option<(Option<K>, u64)> = None;
+    for item in items {
+        match &mut run {
+            Some((k, n)) if *k == item => *n += 1,
+            _ => {
+                if let Some((Some(k), n)) = run {
+                    *counts.entry(k).or_default() += n;
+                }
+                run = Some((item, 1));
+            }
+        }
+    }
+    if let Some((Some(k), n)) = run {
+        *counts.entry(k).or_default() += n;
+    }
+}
+
 /// Relabels the predicted segments with fewer than `min_px` pixels as `sky_id` (instance 0),
 /// in place; returns the number of pixels changed. Segments are as in the panoptic
 /// evaluation: per `things` class one per instance value, per other class one per class.
@@ -191,20 +215,34 @@ where
         is_thing[t as usize] = true;
     }
     let key = |s: u8, i: I| segment_key(s, i.into(), is_thing[s as usize]);
-    let mut area: HashMap<u32, usize> = HashMap::new();
-    for (&s, &i) in sem.iter().zip(inst.iter()) {
-        if s != labels::UNLABELED {
-            *area.entry(key(s, i)).or_default() += 1;
-        }
-    }
+    let mut area: HashMap<u32, u64> = HashMap::new();
+    count_runs(
+        sem.iter()
+            .zip(inst.iter())
+            .map(|(&s, &i)| (s != labels::UNLABELED).then(|| key(s, i))),
+        &mut area,
+    );
     let mut changed = 0;
+    // The last key looked up and whether it is small: a run of one segment asks once.
+    let mut last: Option<(u32, bool)> = None;
     for (s, i) in sem.iter_mut().zip(inst.iter_mut()) {
-        if *s == labels::UNLABELED || *s == sky_id || area[&key(*s, *i)] >= min_px {
+        if *s == labels::UNLABELED || *s == sky_id {
             continue;
         }
-        *s = sky_id;
-        *i = I::default();
-        changed += 1;
+        let k = key(*s, *i);
+        let small = match last {
+            Some((lk, small)) if lk == k => small,
+            _ => {
+                let small = area[&k] < min_px as u64;
+                last = Some((k, small));
+                small
+            }
+        };
+        if small {
+            *s = sky_id;
+            *i = I::default();
+            changed += 1;
+        }
     }
     Ok(changed)
 }
@@ -299,30 +337,47 @@ impl PanopticAccumulator {
         let is_crowd =
             |key: u32| key % INSTANCE_FACTOR == 0 && self.is_thing[key_class(key) as usize];
         let mut gt_area: HashMap<u32, u64> = HashMap::new();
-        for &k in &gt_key {
-            if k != VOID {
-                *gt_area.entry(k).or_default() += 1;
-            }
-        }
+        count_runs(
+            gt_key.iter().map(|&k| (k != VOID).then_some(k)),
+            &mut gt_area,
+        );
         // Small GT segments are void.
         let min_gt = self.config.min_gt_segment_px as u64;
         gt_area.retain(|&k, &mut a| is_crowd(k) || a >= min_gt);
+        let mut last: Option<(u32, bool)> = None;
         for k in &mut gt_key {
-            if *k != VOID && !gt_area.contains_key(k) {
+            if *k == VOID {
+                continue;
+            }
+            let kept = match last {
+                Some((lk, kept)) if lk == *k => kept,
+                _ => {
+                    let kept = gt_area.contains_key(k);
+                    last = Some((*k, kept));
+                    kept
+                }
+            };
+            if !kept {
                 *k = VOID;
             }
         }
 
-        // Predicted segments, their areas and their intersections with GT keys (VOID too).
-        let mut pred_area: HashMap<u32, u64> = HashMap::new();
+        // Intersections of predicted segments with GT keys (VOID too), and from them the
+        // predicted segments' areas.
         let mut pairs: HashMap<(u32, u32), u64> = HashMap::new();
-        for ((&c, &i), &g) in p_sem.iter().zip(&p_inst).zip(&gt_key) {
-            if !evaluated(c) {
-                continue;
-            }
-            let p = segment_key(c, i, self.is_thing[c as usize]);
-            *pred_area.entry(p).or_default() += 1;
-            *pairs.entry((g, p)).or_default() += 1;
+        count_runs(
+            p_sem
+                .iter()
+                .zip(&p_inst)
+                .zip(&gt_key)
+                .map(|((&c, &i), &g)| {
+                    evaluated(c).then(|| (g, segment_key(c, i, self.is_thing[c as usize])))
+                }),
+            &mut pairs,
+        );
+        let mut pred_area: HashMap<u32, u64> = HashMap::new();
+        for (&(_, p), &n) in &pairs {
+            *pred_area.entry(p).or_default() += n;
         }
 
         // Sorted so that float sums are reproducible.

@@ -35,6 +35,8 @@ mod motion;
 mod params;
 mod review;
 mod sums;
+#[cfg(test)]
+pub(crate) mod testing;
 
 use depth_bins::{depth_bin_keys, BinKey};
 use images::{check_size, map_f32, map_u16, map_u8, one_image};

@@ -7,21 +7,20 @@ use std::{collections::BTreeMap, fmt::Write as _, path::Path, path::PathBuf};
 
 use arrow::{
     array::{Array, Float64Array},
-    datatypes::{Float32Type, UInt16Type, UInt32Type, UInt8Type},
+    datatypes::UInt8Type,
     record_batch::RecordBatch,
 };
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::scores::METHODS;
-use crate::report::{
-    depth_colors, depth_error_colors, error_colors, panoptic_colors, png_data_uri, training_svg,
-};
+use crate::report::training_svg;
 use crate::stage::{
     InputSlot, Inputs, Progress, Result, StageError, Table, TableSet, Tables, TypedStage,
 };
 use crate::{labels, tables};
 
 mod motion;
+mod pictures;
 mod review;
 
 #[derive(Debug, Clone, Serialize, Deserialize, schemars::JsonSchema)]
@@ -199,61 +198,6 @@ fn method_row(
 
 fn fmt_value(v: Option<f64>, scale: f64, decimals: usize) -> String {
     v.map_or("–".into(), |v| format!("{:.*}", decimals, v * scale))
-}
-
-/// A per-image table, read one pictured image at a time.
-struct Maps<'a> {
-    table: &'a Table,
-    index: BTreeMap<(u32, u8), usize>,
-}
-
-impl<'a> Maps<'a> {
-    fn new(table: &'a Table) -> Result<Self> {
-        let keys = table.columns(&["frame", "camera"])?;
-        Ok(Maps {
-            index: tables::frame_camera_index(&keys, table.name())?,
-            table,
-        })
-    }
-
-    /// The row of image `key`, if the table has one.
-    fn get(&self, key: (u32, u8)) -> Result<Option<Row>> {
-        self.index
-            .get(&key)
-            .map(|&r| {
-                Ok(Row {
-                    batch: self.table.row(r)?,
-                    table: self.table.name().to_string(),
-                })
-            })
-            .transpose()
-    }
-}
-
-/// One image's row of a per-image table.
-struct Row {
-    batch: RecordBatch,
-    table: String,
-}
-
-impl Row {
-    fn u8(&self, col: &str) -> Result<&[u8]> {
-        Ok(tables::get_list::<UInt8Type>(&self.batch, &self.table, col)?.row(0))
-    }
-    fn u16(&self, col: &str) -> Result<&[u16]> {
-        Ok(tables::get_list::<UInt16Type>(&self.batch, &self.table, col)?.row(0))
-    }
-    fn f32(&self, col: &str) -> Result<&[f32]> {
-        Ok(tables::get_list::<Float32Type>(&self.batch, &self.table, col)?.row(0))
-    }
-    fn bytes(&self, col: &str) -> Result<&[u8]> {
-        Ok(tables::get_binary(&self.batch, &self.table, col)?.value(0))
-    }
-    fn size(&self) -> Result<(u32, u32)> {
-        let w = tables::get_prim::<UInt32Type>(&self.batch, &self.table, "width")?;
-        let h = tables::get_prim::<UInt32Type>(&self.batch, &self.table, "height")?;
-        Ok((w[0], h[0]))
-    }
 }
 
 /// The report page being written, as Markdown and HTML side by side.
@@ -483,143 +427,6 @@ impl Page {
         Ok(())
     }
 
-    /// Per evaluation frame a row of pictures; without GT, the same for rendered frames spread
-    /// over the sequence (no GT and error columns).
-    fn pictures(
-        &mut self,
-        p: &ReportParams,
-        inputs: &Inputs,
-        present: &[u8],
-        progress: &dyn Progress,
-    ) -> Result<()> {
-        let html = &mut self.html;
-        let images = Maps::new(inputs.stored("scene", "images")?)?;
-        let pseudo = Maps::new(inputs.stored("scene", "pseudo_labels")?)?;
-        let maps = Maps::new(inputs.stored("render", "label_maps")?)?;
-        let gt = Maps::new(inputs.stored("evaluate", "eval_gt")?)?;
-        let lidar = Maps::new(inputs.stored("scene", "lidar_depth")?)?;
-        let has_gt = !gt.index.is_empty();
-        let mut keys: Vec<(u32, u8)> = if has_gt {
-            gt.index.keys().copied().take(p.max_frames).collect()
-        } else {
-            let all: Vec<(u32, u8)> = maps.index.keys().copied().collect();
-            spread(&all, p.max_frames)
-        };
-        // Fisheye cameras rendered but not pictured (not evaluated, or past `max_frames`): one
-        // frame of each, the middle one, so the report shows them too.
-        for camera in [2u8, 3] {
-            if keys.iter().any(|k| k.1 == camera) {
-                continue;
-            }
-            let theirs: Vec<(u32, u8)> = maps
-                .index
-                .keys()
-                .copied()
-                .filter(|k| k.1 == camera)
-                .collect();
-            if let Some(&k) = theirs.get(theirs.len() / 2) {
-                keys.push(k);
-            }
-        }
-        if has_gt {
-            html.push_str(
-                "<h2>Evaluation frames</h2><p class=\"cap\">Per frame: RGB · pseudo labels (2D input) · ours (learned semantic field) · \
-                 ground truth · error map (green correct, red wrong, black void) · panoptic (instances shaded) · rendered depth \
-                 (yellow near, purple far) · depth error at LiDAR points (green within a factor 1.25, yellow to red up to a factor 2, \
-                 magenta no depth rendered).</p><div class=\"legend\">",
-            );
-        } else {
-            html.push_str(
-                "<h2>Rendered frames (no GT)</h2><p class=\"cap\">Frames spread over the sequence: RGB · pseudo labels (2D input) · \
-                 ours (learned semantic field) · panoptic (instances shaded) · rendered depth (yellow near, purple far).</p>\
-                 <div class=\"legend\">",
-            );
-        }
-        for &id in present {
-            let c = labels::color(id);
-            let _ = write!(
-                html,
-                "<span><i style=\"background:rgb({},{},{})\"></i>{}</span>",
-                c[0],
-                c[1],
-                c[2],
-                labels::by_id(id).map_or("?", |l| l.name)
-            );
-        }
-        html.push_str("</div><table class=\"frames\">");
-        for (n, key) in keys.iter().enumerate() {
-            progress.update(n as u64, keys.len() as u64, "pictures");
-            let m = maps.get(*key)?;
-            let g = gt.get(*key)?;
-            // The size of the pictured image, from its GT or else its rendered maps.
-            let Some((w, h)) = g.as_ref().or(m.as_ref()).map(Row::size).transpose()? else {
-                continue;
-            };
-            let mut cells: Vec<(&str, Option<Vec<u8>>)> = vec![
-                (
-                    "RGB",
-                    images
-                        .get(*key)?
-                        .map(|r| r.bytes("rgb").map(<[u8]>::to_vec))
-                        .transpose()?,
-                ),
-                (
-                    "pseudo labels",
-                    pseudo
-                        .get(*key)?
-                        .map(|r| r.u8("labels").map(crate::pngio::colorize))
-                        .transpose()?,
-                ),
-            ];
-            let ours = m.as_ref().map(|m| m.u8("semantic")).transpose()?;
-            cells.push(("ours", ours.map(crate::pngio::colorize)));
-            if has_gt {
-                // Rendered images without GT (a fisheye camera not evaluated) say "n/a".
-                let gsem = g.as_ref().map(|g| g.u8("semantic")).transpose()?;
-                cells.push(("ground truth", gsem.map(crate::pngio::colorize)));
-                cells.push((
-                    "error",
-                    ours.zip(gsem).map(|(o, gsem)| error_colors(o, gsem)),
-                ));
-            }
-            cells.push((
-                "panoptic",
-                m.as_ref()
-                    .map(|m| m.u16("instance"))
-                    .transpose()?
-                    .map(panoptic_colors),
-            ));
-            let depth = m.as_ref().map(|m| m.f32("depth")).transpose()?;
-            cells.push(("depth", depth.map(|d| depth_colors(d, p.depth_range))));
-            if has_gt {
-                let l = lidar.get(*key)?;
-                let l = l.as_ref().map(|l| l.f32("depth")).transpose()?;
-                cells.push((
-                    "depth error",
-                    depth.zip(l).map(|(d, l)| depth_error_colors(d, l)),
-                ));
-            }
-            let _ = write!(
-                html,
-                "<tr><td class=\"cap\">frame {}<br>cam {}</td>",
-                key.0, key.1
-            );
-            for (cap, rgb) in cells {
-                match rgb {
-                    Some(rgb) if rgb.len() == (w * h * 3) as usize => {
-                        let uri = png_data_uri(w, h, &rgb, p.zoom)?;
-                        let _ = write!(html, "<td><img src=\"{uri}\" alt=\"{cap}\"><span class=\"cap\">{cap}</span></td>");
-                    }
-                    _ => {
-                        let _ = write!(html, "<td class=\"cap\">{cap}: n/a</td>");
-                    }
-                }
-            }
-            html.push_str("</tr>");
-        }
-        Ok(())
-    }
-
     /// In place of the score tables when nothing was evaluated: why, in plain words.
     fn not_evaluated(&mut self) {
         let why = crate::metrics::scores::NOT_EVALUATED;
@@ -689,13 +496,20 @@ impl TypedStage for Report {
     const KIND: &'static str = "report";
     // 8: the review section; loss curves on a symlog axis where a term is zero or negative.
     // 9: the "Static and moving pixels" table where the scene has moving objects.
-    const VERSION: u32 = 9;
+    // 10: and the pictures of the evaluation image moving objects cover most.
+    const VERSION: u32 = 10;
     const DESCRIPTION: &'static str =
         "self-contained HTML page and Markdown summary: metrics table, per-class IoU, training curves, pictures per evaluation frame";
     const INPUTS: &'static [InputSlot] = &[
         InputSlot {
             name: "scene",
-            tables: &["images", "pseudo_labels", "scene_info", "lidar_depth"],
+            tables: &[
+                "images",
+                "pseudo_labels",
+                "scene_info",
+                "lidar_depth",
+                "dynamic_boxes",
+            ],
             optional: false,
             doc: "the scene (RGB and pseudo labels)",
         },
@@ -762,7 +576,11 @@ impl TypedStage for Report {
             page.metrics(&metric_map(inputs.table("evaluate", "metrics")?)?);
             let present = page.class_iou(inputs.table("evaluate", "class_iou")?)?;
             page.camera_models(inputs.table("evaluate", "camera_metrics")?)?;
-            page.motion_parts(inputs.table("evaluate", "motion_metrics")?)?;
+            let motion = inputs.table("evaluate", "motion_metrics")?;
+            page.motion_parts(motion)?;
+            if motion.num_rows() > 0 {
+                page.moving_picture(inputs, p)?;
+            }
             page.camera_class_iou(inputs.table("evaluate", "camera_class_iou")?)?;
             page.depth_breakdown(inputs.table("evaluate", "depth_breakdown")?)?;
             present
@@ -811,6 +629,7 @@ impl TypedStage for Report {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::report::{error_colors, panoptic_colors};
 
     #[test]
     fn error_map_colours_void_correct_and_wrong() {

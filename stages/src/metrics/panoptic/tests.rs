@@ -474,4 +474,16 @@ proptest! {
             prop_assert!(c.iou_sum <= c.tp as f64 + 1e-9);
         }
     }
+
+    #[test]
+    fn counting_runs_counts_every_item(items in prop::collection::vec(prop::option::of(0u8..4), 0..300)) {
+        let mut runs: HashMap<u8, u64> = HashMap::new();
+        runs.insert(3, 7); // counts add to what is there
+        count_runs(items.iter().copied(), &mut runs);
+        let mut one_by_one: HashMap<u8, u64> = HashMap::from([(3, 7)]);
+        for k in items.iter().flatten() {
+            *one_by_one.entry(*k).or_default() += 1;
+        }
+        prop_assert_eq!(runs, one_by_one);
+    }
 }
