@@ -42,7 +42,7 @@ use depth_bins::{depth_bin_keys, BinKey};
 use images::{check_size, map_f32, map_u16, map_u8, one_image};
 pub use json::{camera_metrics_json, depth_breakdown_json, metrics_json, motion_metrics_json};
 pub use motion::PARTS as MOTION_PARTS;
-use motion::{MotionGroups, MovingObjects, PARTS};
+use motion::{MotionGroups, MovingObjects, PartGt, PARTS};
 pub use params::{EvaluateParams, PANOPTICAPI_SUFFIX, PQ_CONVENTIONS};
 use sums::{ClassRows, FrameMaps, Group, GtRows, MetricRows};
 
@@ -283,14 +283,27 @@ impl Evaluation {
                 }
             }
         }
-        self.all.add(&f)?;
-        self.by_model
-            .get_mut(camera_model(c))
-            .expect("a group per evaluated camera model")
-            .add(&f)?;
-        if let Some(parts) = &mut self.by_motion {
-            parts.add(&f, &self.moving.mask(&c.cam, c.frame))?;
+        // Every group this image counts in, scored in parallel: the whole, its camera model's,
+        // and (with moving objects) the static and the moving part.
+        let split = self
+            .by_motion
+            .is_some()
+            .then(|| PartGt::split(&f, &self.moving.mask(&c.cam, c.frame)));
+        let mut jobs: Vec<(&mut Group, FrameMaps)> = vec![
+            (&mut self.all, f),
+            (
+                self.by_model
+                    .get_mut(camera_model(c))
+                    .expect("a group per evaluated camera model"),
+                f,
+            ),
+        ];
+        if let (Some(groups), Some(split)) = (&mut self.by_motion, &split) {
+            for (group, part) in groups.parts.iter_mut().zip(split) {
+                jobs.push((group, part.maps(&f)));
+            }
         }
+        jobs.into_par_iter().try_for_each(|(g, f)| g.add(&f))?;
         for (method, labels) in [
             ("panoptic_nerf", Some(f.ours)),
             ("fixed_field", Some(f.fixed)),
@@ -451,7 +464,8 @@ impl TypedStage for Evaluate {
     // 10: with a `review` input, the review's figures against GT in `metrics`.
     // 11: `motion_metrics` (static and moving pixels apart); the first-primitive baseline
     // includes the moving objects' boxes.
-    const VERSION: u32 = 11;
+    // 12: the parts' `motion_metrics` without the panopticapi and off-boundary depth rows.
+    const VERSION: u32 = 12;
     const DESCRIPTION: &'static str =
         "semantic (mIoU, Acc), panoptic (PQ/SQ/RQ, PQ-dagger), multi-view consistency and depth metrics against GT, for the rendered labels and the baselines";
     const INPUTS: &'static [InputSlot] = &[

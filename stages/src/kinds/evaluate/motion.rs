@@ -73,49 +73,58 @@ pub(super) struct MotionGroups {
 impl MotionGroups {
     pub(super) fn new(p: &EvaluateParams) -> Result<Self> {
         Ok(Self {
-            parts: [Group::new(p)?, Group::new(p)?],
+            parts: [Group::for_part(p)?, Group::for_part(p)?],
         })
     }
+}
 
-    /// One evaluated image, each part with the other's GT void.
-    pub(super) fn add(&mut self, f: &FrameMaps, moving: &[bool]) -> Result<()> {
-        for (k, group) in self.parts.iter_mut().enumerate() {
-            let keep = |i: usize| moving[i] == (k == 1);
-            let gsem: Vec<u8> = (0..f.gsem.len())
-                .map(|i| {
-                    if keep(i) {
-                        f.gsem[i]
-                    } else {
-                        labels::UNLABELED
-                    }
-                })
-                .collect();
-            let ginst: Vec<u16> = (0..f.ginst.len())
-                .map(|i| if keep(i) { f.ginst[i] } else { 0 })
-                .collect();
+/// One part's GT and depth references: the image's, void where the pixel is in the other part.
+pub(super) struct PartGt {
+    gsem: Vec<u8>,
+    ginst: Vec<u16>,
+    lidar: Option<Vec<f32>>,
+    exact: Option<Vec<f32>>,
+}
+
+impl PartGt {
+    /// The static part's and the moving part's of image `f`, `moving` its moving pixels.
+    pub(super) fn split(f: &FrameMaps, moving: &[bool]) -> [PartGt; 2] {
+        [false, true].map(|in_moving| {
+            let keep = |i: usize| moving[i] == in_moving;
             let depth = |d: &[f32]| -> Vec<f32> {
                 d.iter()
                     .enumerate()
                     .map(|(i, &v)| if keep(i) { v } else { 0.0 })
                     .collect()
             };
-            let (lidar, exact) = (f.lidar.map(depth), f.exact.map(depth));
-            group.add(&FrameMaps {
-                gsem: &gsem,
-                ginst: &ginst,
-                ours: f.ours,
-                ours_inst: f.ours_inst,
-                fixed: f.fixed,
-                depth: f.depth,
-                fp_sem: f.fp_sem,
-                fp_inst: f.fp_inst,
-                pseudo: f.pseudo,
-                lidar: lidar.as_deref(),
-                exact: exact.as_deref(),
-                boundary: f.boundary,
-            })?;
+            PartGt {
+                gsem: (0..f.gsem.len())
+                    .map(|i| {
+                        if keep(i) {
+                            f.gsem[i]
+                        } else {
+                            labels::UNLABELED
+                        }
+                    })
+                    .collect(),
+                ginst: (0..f.ginst.len())
+                    .map(|i| if keep(i) { f.ginst[i] } else { 0 })
+                    .collect(),
+                lidar: f.lidar.map(depth),
+                exact: f.exact.map(depth),
+            }
+        })
+    }
+
+    /// Image `f`'s maps with this part's GT and references.
+    pub(super) fn maps<'a>(&'a self, f: &FrameMaps<'a>) -> FrameMaps<'a> {
+        FrameMaps {
+            gsem: &self.gsem,
+            ginst: &self.ginst,
+            lidar: self.lidar.as_deref(),
+            exact: self.exact.as_deref(),
+            ..*f
         }
-        Ok(())
     }
 }
 

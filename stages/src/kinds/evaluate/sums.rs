@@ -144,10 +144,12 @@ impl MethodSums {
         sem: &[u8],
         inst: &[u16],
     ) -> Result<()> {
-        for acc in [&mut self.panoptic, &mut self.panopticapi] {
-            acc.as_mut()
-                .expect("a panoptic method")
-                .add_frame(gsem, ginst, sem, inst)?;
+        self.panoptic
+            .as_mut()
+            .expect("a panoptic method")
+            .add_frame(gsem, ginst, sem, inst)?;
+        if let Some(api) = &mut self.panopticapi {
+            api.add_frame(gsem, ginst, sem, inst)?;
         }
         Ok(())
     }
@@ -162,10 +164,22 @@ pub(super) struct Group {
     pub(super) exact_vs_lidar: [DepthAccumulator; 2],
     pub(super) frames: usize,
     pub(super) pseudo_frames: usize,
+    /// A part of the images' pixels (static or moving): scored by the headline metrics only,
+    /// without the panopticapi convention and the depth off class boundaries.
+    part: bool,
 }
 
 impl Group {
     pub(super) fn new(p: &EvaluateParams) -> Result<Self> {
+        Self::build(p, false)
+    }
+
+    /// The group of a part of the images' pixels.
+    pub(super) fn for_part(p: &EvaluateParams) -> Result<Self> {
+        Self::build(p, true)
+    }
+
+    fn build(p: &EvaluateParams, part: bool) -> Result<Self> {
         let pan_cfg = PanopticConfig {
             classes: p.classes.clone(),
             things: p.things.clone(),
@@ -190,11 +204,11 @@ impl Group {
             Ok(MethodSums {
                 confusion: ConfusionMatrix::new(&p.classes)?,
                 panoptic: acc(&pan_cfg)?,
-                panopticapi: acc(&api_cfg)?,
+                panopticapi: if part { None } else { acc(&api_cfg)? },
                 depth: depth_acc()?,
-                depth_interior: depth_acc()?,
+                depth_interior: if part { None } else { depth_acc()? },
                 depth_exact: depth_acc()?,
-                depth_exact_interior: depth_acc()?,
+                depth_exact_interior: if part { None } else { depth_acc()? },
                 mc: Some(Consistency::default()),
             })
         };
@@ -211,6 +225,7 @@ impl Group {
             ],
             frames: 0,
             pseudo_frames: 0,
+            part,
         })
     }
 
@@ -221,20 +236,21 @@ impl Group {
         s.confusion.add(f.gsem, f.ours)?;
         s.add_panoptic(f.gsem, f.ginst, f.ours, f.ours_inst)?;
         if let Some(l) = f.lidar {
-            let interior = off_boundary(l, f.boundary);
             s.depth.as_mut().unwrap().add(f.depth, l)?;
-            s.depth_interior.as_mut().unwrap().add(f.depth, &interior)?;
-            if let Some(exact) = f.exact {
-                self.exact_vs_lidar[0].add(exact, l)?;
-                self.exact_vs_lidar[1].add(exact, &interior)?;
+            if let Some(d) = &mut s.depth_interior {
+                let interior = off_boundary(l, f.boundary);
+                d.add(f.depth, &interior)?;
+                if let Some(exact) = f.exact {
+                    self.exact_vs_lidar[0].add(exact, l)?;
+                    self.exact_vs_lidar[1].add(exact, &interior)?;
+                }
             }
         }
         if let Some(exact) = f.exact {
             s.depth_exact.as_mut().unwrap().add(f.depth, exact)?;
-            s.depth_exact_interior
-                .as_mut()
-                .unwrap()
-                .add(f.depth, &off_boundary(exact, f.boundary))?;
+            if let Some(d) = &mut s.depth_exact_interior {
+                d.add(f.depth, &off_boundary(exact, f.boundary))?;
+            }
         }
         let s = self.sums.get_mut("fixed_field").unwrap();
         s.confusion.add(f.gsem, f.fixed)?;
@@ -280,6 +296,9 @@ impl Group {
             let pan = s.panoptic.as_ref().map(|a| a.result());
             let api = s.panopticapi.as_ref().map(|a| a.result());
             for (suffix, res) in [("", &pan), (PANOPTICAPI_SUFFIX, &api)] {
+                if self.part && !suffix.is_empty() {
+                    continue;
+                }
                 let part = |f: fn(&PanopticResult) -> Option<PqSummary>| res.as_ref().and_then(f);
                 for (prefix, summary) in [
                     ("", part(|r| r.all)),
@@ -311,6 +330,9 @@ impl Group {
                 ("_exact", &s.depth_exact),
                 ("_exact_interior", &s.depth_exact_interior),
             ] {
+                if self.part && suffix.ends_with("_interior") {
+                    continue;
+                }
                 push_depth(&mut push, method, suffix, acc.as_ref().map(|d| d.result()));
             }
             ciou(method, &s.confusion);
@@ -352,6 +374,7 @@ fn push_depth(
 }
 
 /// One evaluated image's maps: GT, each method's labels, LiDAR where the image has it.
+#[derive(Clone, Copy)]
 pub(super) struct FrameMaps<'a> {
     pub(super) gsem: &'a [u8],
     pub(super) ginst: &'a [u16],
