@@ -10,22 +10,14 @@ use crate::stage::{Result, StageError};
 
 /// `rgb` as an inline PNG (`data:` URI), scaled up `zoom` times (nearest neighbour).
 pub fn png_data_uri(w: u32, h: u32, rgb: &[u8], zoom: u32) -> Result<String> {
-    let img = image::RgbImage::from_raw(w, h, rgb.to_vec()).ok_or_else(|| {
-        StageError::Input(format!(
+    if rgb.len() != (w as usize) * (h as usize) * 3 {
+        return Err(StageError::Input(format!(
             "{} bytes do not make a {w}x{h} RGB image",
             rgb.len()
-        ))
-    })?;
-    let img = if zoom > 1 {
-        image::imageops::resize(
-            &img,
-            w * zoom,
-            h * zoom,
-            image::imageops::FilterType::Nearest,
-        )
-    } else {
-        img
-    };
+        )));
+    }
+    let (zw, zh, zoomed) = zoom_rgb(w, h, rgb, zoom.max(1));
+    let img = image::RgbImage::from_raw(zw, zh, zoomed).expect("sized above");
     let mut buf = Cursor::new(Vec::new());
     img.write_to(&mut buf, image::ImageFormat::Png)
         .map_err(|e| StageError::Failed(format!("encoding PNG: {e}")))?;
@@ -33,6 +25,29 @@ pub fn png_data_uri(w: u32, h: u32, rgb: &[u8], zoom: u32) -> Result<String> {
         "data:image/png;base64,{}",
         base64::engine::general_purpose::STANDARD.encode(buf.into_inner())
     ))
+}
+
+/// `rgb` (`w` x `h`) with every pixel made a `zoom` x `zoom` block: nearest-neighbour scaling
+/// by an integer factor, a row built once and copied.
+fn zoom_rgb(w: u32, h: u32, rgb: &[u8], zoom: u32) -> (u32, u32, Vec<u8>) {
+    let z = zoom as usize;
+    if z == 1 {
+        return (w, h, rgb.to_vec());
+    }
+    let row_bytes = w as usize * 3;
+    let mut out = Vec::with_capacity(rgb.len() * z * z);
+    for row in rgb.chunks_exact(row_bytes) {
+        let start = out.len();
+        for px in row.chunks_exact(3) {
+            for _ in 0..z {
+                out.extend_from_slice(px);
+            }
+        }
+        for _ in 1..z {
+            out.extend_from_within(start..start + row_bytes * z);
+        }
+    }
+    (w * zoom, h * zoom, out)
 }
 
 /// Panoptic colours: the class colour, shifted per instance so neighbouring things differ.
@@ -107,6 +122,28 @@ pub fn depth_error_colors(pred: &[f32], lidar: &[f32]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn zooming_makes_each_pixel_a_block_as_the_image_crate_does() {
+        let (w, h) = (7u32, 5u32);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 251) as u8).collect();
+        for zoom in [1u32, 2, 3] {
+            let (zw, zh, z) = zoom_rgb(w, h, &rgb, zoom);
+            assert_eq!((zw, zh), (w * zoom, h * zoom));
+            for y in 0..zh {
+                for x in 0..zw {
+                    let o = ((y * zw + x) * 3) as usize;
+                    let i = (((y / zoom) * w + x / zoom) * 3) as usize;
+                    assert_eq!(z[o..o + 3], rgb[i..i + 3], "zoom {zoom} at {x},{y}");
+                }
+            }
+            let img = image::RgbImage::from_raw(w, h, rgb.clone()).unwrap();
+            let theirs =
+                image::imageops::resize(&img, zw, zh, image::imageops::FilterType::Nearest);
+            assert_eq!(theirs.into_raw(), z, "zoom {zoom}");
+        }
+        assert!(png_data_uri(w, h, &rgb[1..], 2).is_err());
+    }
 
     #[test]
     fn depth_error_colours_by_ratio_either_way() {
