@@ -49,37 +49,49 @@ use sums::{ClassRows, FrameMaps, Group, GtRows, MetricRows};
 pub struct Evaluate;
 
 /// Label and panoptic maps of "the first primitive each ray hits" (sky where none is hit):
-/// the static `prims` and the moving objects' boxes at the image's frame (`moving`).
+/// the static `prims` and the moving objects' boxes at the image's frame (`moving`); and per
+/// pixel whether its ray meets a moving box at all (in front of or behind the first hit).
 pub fn first_primitive_maps(
     cam: &geometry::Camera,
     prims: &[Primitive],
     bvh: &Bvh,
     moving: (&[Primitive], &Bvh),
-) -> (Vec<u8>, Vec<u16>) {
+) -> (Vec<u8>, Vec<u16>, Vec<bool>) {
     let n = (cam.width * cam.height) as usize;
     let mut sem = vec![labels::SKY; n];
     let mut inst = vec![labels::SKY as u16 * labels::INSTANCE_FACTOR as u16; n];
+    let mut meets_moving = vec![false; n];
     sem.par_iter_mut()
         .zip(inst.par_iter_mut())
+        .zip(meets_moving.par_iter_mut())
         .enumerate()
-        .for_each(|(i, (s, ins))| {
+        .for_each(|(i, ((s, ins), meets))| {
             let (x, y) = ((i as u32) % cam.width, (i as u32) / cam.width);
             let Some(ray) = cam.pixel_ray(x, y) else {
                 *s = labels::UNLABELED;
                 *ins = 0;
                 return;
             };
-            let first =
-                Bvh::first_hit_of_two((bvh, prims), (moving.1, moving.0), &ray, 0.0, f64::INFINITY)
-                    .map(|(h, is_moving)| {
-                        &(if is_moving { moving.0 } else { prims })[h.prim as usize]
-                    });
+            let hit =
+                Bvh::first_hit_of_two((bvh, prims), (moving.1, moving.0), &ray, 0.0, f64::INFINITY);
+            *meets = match hit {
+                Some((_, true)) => true,
+                _ => {
+                    !moving.0.is_empty()
+                        && moving
+                            .1
+                            .first_hit(moving.0, &ray, 0.0, f64::INFINITY)
+                            .is_some()
+                }
+            };
+            let first = hit
+                .map(|(h, is_moving)| &(if is_moving { moving.0 } else { prims })[h.prim as usize]);
             if let Some(p) = first {
                 *s = p.label;
                 *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;
             }
         });
-    (sem, inst)
+    (sem, inst, meets_moving)
 }
 
 fn view<'a>(c: &CameraRow, labels: &'a [u8], depth: &'a [f32]) -> LabelledView<'a> {
@@ -246,7 +258,8 @@ impl Evaluation {
             .as_ref()
             .map(|r| map_u8(&one_image(r, "pseudo_labels")?, "pseudo_labels", "labels"))
             .transpose()?;
-        let (fp_sem, fp_inst) = first_primitive_maps(&c.cam, prims, bvh, self.moving.at(c.frame));
+        let (fp_sem, fp_inst, moving) =
+            first_primitive_maps(&c.cam, prims, bvh, self.moving.at(c.frame));
         let gsem = map_u8(g, "gt_semantic", "labels")?;
         let boundary = labels::label_edges(gsem, g.width);
         let f = FrameMaps {
@@ -284,26 +297,26 @@ impl Evaluation {
             }
         }
         // Every group this image counts in, scored in parallel: the whole, its camera model's,
-        // and (with moving objects) the static and the moving part.
-        let split = self
-            .by_motion
-            .is_some()
-            .then(|| PartGt::split(&f, &self.moving.mask(&c.cam, c.frame)));
-        let mut jobs: Vec<(&mut Group, FrameMaps)> = vec![
-            (&mut self.all, f),
+        // and (with moving objects) the static and the moving part, each part's GT made in
+        // its own task.
+        let mut jobs: Vec<(&mut Group, Option<bool>)> = vec![
+            (&mut self.all, None),
             (
                 self.by_model
                     .get_mut(camera_model(c))
                     .expect("a group per evaluated camera model"),
-                f,
+                None,
             ),
         ];
-        if let (Some(groups), Some(split)) = (&mut self.by_motion, &split) {
-            for (group, part) in groups.parts.iter_mut().zip(split) {
-                jobs.push((group, part.maps(&f)));
+        if let Some(groups) = &mut self.by_motion {
+            for (group, in_moving) in groups.parts.iter_mut().zip([false, true]) {
+                jobs.push((group, Some(in_moving)));
             }
         }
-        jobs.into_par_iter().try_for_each(|(g, f)| g.add(&f))?;
+        jobs.into_par_iter().try_for_each(|(g, part)| match part {
+            Some(in_moving) => g.add(&PartGt::of(&f, &moving, in_moving).maps(&f)),
+            None => g.add(&f),
+        })?;
         for (method, labels) in [
             ("panoptic_nerf", Some(f.ours)),
             ("fixed_field", Some(f.fixed)),

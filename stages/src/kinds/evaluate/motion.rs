@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 
 use super::sums::{FrameMaps, Group};
 use super::EvaluateParams;
-use crate::geometry::{changes::pixels_meeting, Bvh, Camera, DynamicBox, Primitive};
+use crate::geometry::{Bvh, DynamicBox, Primitive};
 use crate::{labels, Result};
 
 /// The parts, as the `motion_metrics` table names them.
@@ -53,16 +53,6 @@ impl MovingObjects {
             .get(&frame)
             .map_or((&[][..], &self.none), |(p, b)| (&p[..], b))
     }
-
-    /// Per pixel of `cam` at `frame`: its ray meets a moving object's box.
-    pub(super) fn mask(&self, cam: &Camera, frame: u32) -> Vec<bool> {
-        let mut mask = vec![false; (cam.width * cam.height) as usize];
-        let (boxes, _) = self.at(frame);
-        for p in pixels_meeting(cam, boxes, f64::INFINITY) {
-            mask[p as usize] = true;
-        }
-        mask
-    }
 }
 
 /// The static and the moving part's accumulators.
@@ -87,33 +77,32 @@ pub(super) struct PartGt {
 }
 
 impl PartGt {
-    /// The static part's and the moving part's of image `f`, `moving` its moving pixels.
-    pub(super) fn split(f: &FrameMaps, moving: &[bool]) -> [PartGt; 2] {
-        [false, true].map(|in_moving| {
-            let keep = |i: usize| moving[i] == in_moving;
-            let depth = |d: &[f32]| -> Vec<f32> {
-                d.iter()
-                    .enumerate()
-                    .map(|(i, &v)| if keep(i) { v } else { 0.0 })
-                    .collect()
-            };
-            PartGt {
-                gsem: (0..f.gsem.len())
-                    .map(|i| {
-                        if keep(i) {
-                            f.gsem[i]
-                        } else {
-                            labels::UNLABELED
-                        }
-                    })
-                    .collect(),
-                ginst: (0..f.ginst.len())
-                    .map(|i| if keep(i) { f.ginst[i] } else { 0 })
-                    .collect(),
-                lidar: f.lidar.map(depth),
-                exact: f.exact.map(depth),
-            }
-        })
+    /// The moving part's (`in_moving`) or the static part's of image `f`, `moving` its moving
+    /// pixels.
+    pub(super) fn of(f: &FrameMaps, moving: &[bool], in_moving: bool) -> PartGt {
+        let keep = |i: usize| moving[i] == in_moving;
+        let depth = |d: &[f32]| -> Vec<f32> {
+            d.iter()
+                .enumerate()
+                .map(|(i, &v)| if keep(i) { v } else { 0.0 })
+                .collect()
+        };
+        PartGt {
+            gsem: (0..f.gsem.len())
+                .map(|i| {
+                    if keep(i) {
+                        f.gsem[i]
+                    } else {
+                        labels::UNLABELED
+                    }
+                })
+                .collect(),
+            ginst: (0..f.ginst.len())
+                .map(|i| if keep(i) { f.ginst[i] } else { 0 })
+                .collect(),
+            lidar: f.lidar.map(depth),
+            exact: f.exact.map(depth),
+        }
     }
 
     /// Image `f`'s maps with this part's GT and references.
@@ -238,5 +227,33 @@ mod tests {
             with > without,
             "box projection {with} with the moving boxes, {without} without"
         );
+    }
+
+    #[test]
+    fn the_moving_pixels_are_those_whose_ray_meets_a_moving_box() {
+        use crate::geometry::changes::pixels_meeting;
+        let p = SceneParams {
+            frames: 4,
+            moving_objects: 3,
+            ..SceneParams::default()
+        };
+        let scene = to_tables(&p, generate(&p, &NoProgress).unwrap()).unwrap();
+        let boxes = crate::geometry::dynamic_boxes_from_table(&scene["dynamic_boxes"]).unwrap();
+        let moving = MovingObjects::new(boxes);
+        let prims = crate::geometry::primitives_from_table(&scene["primitives"]).unwrap();
+        let bvh = Bvh::build(&prims);
+        let cameras = crate::geometry::cameras_from_table(&scene["cameras"]).unwrap();
+        let mut met = 0;
+        for c in &cameras {
+            let (_, _, mask) =
+                super::super::first_primitive_maps(&c.cam, &prims, &bvh, moving.at(c.frame));
+            let mut want = vec![false; mask.len()];
+            for i in pixels_meeting(&c.cam, moving.at(c.frame).0, f64::INFINITY) {
+                want[i as usize] = true;
+            }
+            assert_eq!(mask, want, "frame {} camera {}", c.frame, c.camera);
+            met += want.iter().filter(|&&m| m).count();
+        }
+        assert!(met > 100, "{met} moving pixels");
     }
 }
