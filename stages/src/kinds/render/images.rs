@@ -169,7 +169,7 @@ pub(super) fn render_all(
         total += pixels(&camera_of(key)?.cam);
     }
     let seq = sequence(inputs)?;
-    let moving = MovingLabels::new(inputs)?;
+    let moving = MovingLabels::new(inputs, &cams)?;
     let mut out = inputs.writer("label_maps")?;
     // The lens mask of each camera, kept while its intrinsics stay the same.
     let mut masks: HashMap<u8, (Camera, Vec<bool>)> = HashMap::new();

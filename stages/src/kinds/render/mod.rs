@@ -6,6 +6,7 @@
 //! over the static field's maps from their per-frame boxes ([`moving`]). After an edit of the
 //! primitives it renders again only the pixels whose ray can meet a changed primitive.
 
+mod hull;
 mod images;
 mod moving;
 mod params;
@@ -33,7 +34,8 @@ impl TypedStage for Render {
     // 11: moving objects labelled from their boxes (`dynamic_boxes`), trimmed by the pseudo
     // labels and the static depth; the same maps for a scene without moving objects.
     // 10: `adaptive: false` is `coarse_stride: 1` (one knob); the same maps.
-    const VERSION: u32 = 11;
+    // 12: in images without pseudo labels, moving objects labelled from their hulls.
+    const VERSION: u32 = 12;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const MOVED: &'static [(&'static str, &'static str)] =

@@ -4,13 +4,19 @@
 //! box before the static surface the field renders there, and whose pseudo label (where the
 //! image has them) is the box's class, takes the box's class, its instance (one id per object
 //! for the whole sequence) and the depth where the ray enters the box. The box is coarse; the
-//! pseudo label trims it to the object's outline, the static depth to what is in front.
+//! pseudo label trims it to the object's outline, the static depth to what is in front. In an
+//! image without pseudo labels the object's hull ([`Hulls`], voted from the images with them)
+//! takes the pseudo labels' place: a pixel is the object's where its ray meets the hull before
+//! the static surface, at the depth where it meets it.
 
 use std::collections::HashMap;
 
 use arrow::datatypes::UInt8Type;
 
-use crate::geometry::{self, changes::pixels_meeting, Camera, DynamicBox, Interval, Primitive};
+use super::hull::Hulls;
+use crate::geometry::{
+    self, changes::pixels_meeting, Camera, CameraRow, DynamicBox, Interval, Primitive,
+};
 use crate::labels::INSTANCE_FACTOR;
 use crate::model::maps::ImageMaps;
 use crate::stage::{Inputs, Result, StageError, Table};
@@ -24,17 +30,31 @@ pub(super) struct MovingLabels<'a> {
 }
 
 impl<'a> MovingLabels<'a> {
-    pub(super) fn new(inputs: &Inputs<'a>) -> Result<Self> {
+    /// The boxes, and the objects' hulls voted from the pseudo labels of the images of `cams`.
+    pub(super) fn new(inputs: &Inputs<'a>, cams: &[CameraRow]) -> Result<Self> {
         let boxes = geometry::dynamic_boxes_from_table(inputs.table("scene", "dynamic_boxes")?)?;
         let pseudo = inputs.stored("scene", "pseudo_labels")?;
-        Ok(Self {
+        let mut labels = Self {
             boxes: MovingBoxes::new(boxes),
             rows: tables::frame_camera_index(
                 &pseudo.columns(&["frame", "camera"])?,
                 "pseudo_labels",
             )?,
             pseudo,
-        })
+        };
+        if labels.boxes.by_frame.is_empty() {
+            return Ok(labels);
+        }
+        let mut hulls = std::mem::take(&mut labels.boxes.hulls);
+        for c in cams {
+            let n = (c.cam.width * c.cam.height) as usize;
+            if let Some(l) = labels.pseudo_labels(c.frame, c.camera, n)? {
+                hulls.vote(&c.cam, &labels.boxes.by_frame[&c.frame], &l);
+            }
+        }
+        hulls.settle();
+        labels.boxes.hulls = hulls;
+        Ok(labels)
     }
 
     /// The pseudo labels of image (`frame`, `camera`) of `n` pixels, read only where the image
@@ -63,19 +83,25 @@ impl<'a> MovingLabels<'a> {
     }
 }
 
-/// The moving objects' boxes, per frame.
+/// The moving objects' boxes per frame (with their object), and their hulls.
 #[derive(Default)]
 pub(super) struct MovingBoxes {
-    by_frame: HashMap<u32, Vec<Primitive>>,
+    by_frame: HashMap<u32, Vec<(Primitive, u32)>>,
+    hulls: Hulls,
 }
 
 impl MovingBoxes {
+    /// The boxes, with empty hulls (see [`Hulls::vote`]).
     pub(super) fn new(boxes: Vec<DynamicBox>) -> Self {
-        let mut by_frame: HashMap<u32, Vec<Primitive>> = HashMap::new();
+        let hulls = Hulls::new(&boxes);
+        let mut by_frame: HashMap<u32, Vec<(Primitive, u32)>> = HashMap::new();
         for b in boxes {
-            by_frame.entry(b.frame).or_default().push(b.primitive);
+            by_frame
+                .entry(b.frame)
+                .or_default()
+                .push((b.primitive, b.object));
         }
-        Self { by_frame }
+        Self { by_frame, hulls }
     }
 
     /// Whether any box is at `frame`.
@@ -94,20 +120,26 @@ impl MovingBoxes {
         let Some(boxes) = self.by_frame.get(&maps.frame) else {
             return 0;
         };
+        let prims: Vec<Primitive> = boxes.iter().map(|(b, _)| b.clone()).collect();
         let mut buf: Vec<Interval> = Vec::new();
         let mut labelled = 0;
-        for px in pixels_meeting(cam, boxes, f64::INFINITY) {
+        for px in pixels_meeting(cam, &prims, f64::INFINITY) {
             let p = px as usize;
             let Some(ray) = cam.pixel_ray(px % cam.width, px / cam.width) else {
                 continue;
             };
-            // The box the ray enters first.
+            // Where the ray first meets a moving object: its hull where the image has no
+            // pseudo labels and the object has one, else its box's entry.
             let mut first: Option<(f64, &Primitive)> = None;
-            for b in boxes {
-                buf.clear();
-                b.intersect(&ray, &mut buf);
-                for iv in &buf {
-                    let t = iv.t_in.max(0.0);
+            for (b, object) in boxes {
+                let t = if pseudo.is_none() && self.hulls.has(*object) {
+                    self.hulls.first_hit(*object, b, &ray, &mut buf)
+                } else {
+                    buf.clear();
+                    b.intersect(&ray, &mut buf);
+                    buf.iter().map(|iv| iv.t_in.max(0.0)).min_by(f64::total_cmp)
+                };
+                if let Some(t) = t {
                     if first.is_none_or(|(best, _)| t < best) {
                         first = Some((t, b));
                     }
