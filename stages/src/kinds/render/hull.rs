@@ -22,6 +22,8 @@ const SHARE: f64 = 0.7;
 struct ObjectHull {
     label: u8,
     n: [usize; 3],
+    /// The voxel centres in the box's unit cube, in index order.
+    centres: Vec<glam::DVec3>,
     class_votes: Vec<u32>,
     seen: Vec<u32>,
     occupied: Vec<bool>,
@@ -31,29 +33,25 @@ impl ObjectHull {
     fn new(label: u8, size: [f64; 3]) -> Self {
         let n = size.map(|s| ((s / VOXEL_M).ceil() as usize).clamp(MIN_VOXELS, MAX_VOXELS));
         let len = n[0] * n[1] * n[2];
+        let [nx, ny, nz] = n;
+        let centres = (0..nz)
+            .flat_map(|z| (0..ny).flat_map(move |y| (0..nx).map(move |x| [x, y, z])))
+            .map(|[x, y, z]| {
+                glam::DVec3::new(
+                    (x as f64 + 0.5) / nx as f64 - 0.5,
+                    (y as f64 + 0.5) / ny as f64 - 0.5,
+                    (z as f64 + 0.5) / nz as f64 - 0.5,
+                )
+            })
+            .collect();
         Self {
             label,
             n,
+            centres,
             class_votes: vec![0; len],
             seen: vec![0; len],
             occupied: Vec::new(),
         }
-    }
-
-    /// The voxel centres in the box's unit cube, in index order.
-    fn centres(&self) -> impl Iterator<Item = glam::DVec3> + '_ {
-        let [nx, ny, nz] = self.n;
-        (0..nz).flat_map(move |z| {
-            (0..ny).flat_map(move |y| {
-                (0..nx).map(move |x| {
-                    glam::DVec3::new(
-                        (x as f64 + 0.5) / nx as f64 - 0.5,
-                        (y as f64 + 0.5) / ny as f64 - 0.5,
-                        (z as f64 + 0.5) / nz as f64 - 0.5,
-                    )
-                })
-            })
-        })
     }
 
     fn index(&self, q: glam::DVec3) -> Option<usize> {
@@ -113,8 +111,7 @@ impl Hulls {
             let Some(h) = self.by_object.get_mut(object) else {
                 continue;
             };
-            let centres: Vec<glam::DVec3> = h.centres().collect();
-            for (i, c) in centres.into_iter().enumerate() {
+            for (i, &c) in h.centres.iter().enumerate() {
                 let Some((u, v, _)) = cam.project(b.to_world.transform_point3(c)) else {
                     continue;
                 };
