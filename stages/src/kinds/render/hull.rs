@@ -105,9 +105,16 @@ impl Hulls {
         }
     }
 
-    /// Counts the votes of one image's pseudo labels (`cam` at the frame of `boxes`).
-    pub(super) fn vote(&mut self, cam: &Camera, boxes: &[(Primitive, u32)], pseudo: &[u8]) {
-        for (b, object) in boxes {
+    /// Counts the votes of one image's pseudo labels (`cam` at the frame of `boxes`, whose
+    /// objects are `objects`).
+    pub(super) fn vote(
+        &mut self,
+        cam: &Camera,
+        boxes: &[Primitive],
+        objects: &[u32],
+        pseudo: &[u8],
+    ) {
+        for (b, object) in boxes.iter().zip(objects) {
             let Some(h) = self.by_object.get_mut(object) else {
                 continue;
             };
@@ -245,7 +252,7 @@ mod tests {
                     }
                 })
                 .collect();
-            hulls.vote(&cam, &[(bx.clone(), 26003)], &pseudo);
+            hulls.vote(&cam, std::slice::from_ref(&bx), &[26003], &pseudo);
         }
         hulls.settle();
         assert!(hulls.has(26003));

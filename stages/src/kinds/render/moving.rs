@@ -49,7 +49,8 @@ impl<'a> MovingLabels<'a> {
         for c in cams {
             let n = (c.cam.width * c.cam.height) as usize;
             if let Some(l) = labels.pseudo_labels(c.frame, c.camera, n)? {
-                hulls.vote(&c.cam, &labels.boxes.by_frame[&c.frame], &l);
+                let (prims, objects) = &labels.boxes.by_frame[&c.frame];
+                hulls.vote(&c.cam, prims, objects, &l);
             }
         }
         hulls.settle();
@@ -86,7 +87,8 @@ impl<'a> MovingLabels<'a> {
 /// The moving objects' boxes per frame (with their object), and their hulls.
 #[derive(Default)]
 pub(super) struct MovingBoxes {
-    by_frame: HashMap<u32, Vec<(Primitive, u32)>>,
+    /// Per frame the boxes and, in the same order, their objects.
+    by_frame: HashMap<u32, (Vec<Primitive>, Vec<u32>)>,
     hulls: Hulls,
 }
 
@@ -94,12 +96,11 @@ impl MovingBoxes {
     /// The boxes, with empty hulls (see [`Hulls::vote`]).
     pub(super) fn new(boxes: Vec<DynamicBox>) -> Self {
         let hulls = Hulls::new(&boxes);
-        let mut by_frame: HashMap<u32, Vec<(Primitive, u32)>> = HashMap::new();
+        let mut by_frame: HashMap<u32, (Vec<Primitive>, Vec<u32>)> = HashMap::new();
         for b in boxes {
-            by_frame
-                .entry(b.frame)
-                .or_default()
-                .push((b.primitive, b.object));
+            let (prims, objects) = by_frame.entry(b.frame).or_default();
+            prims.push(b.primitive);
+            objects.push(b.object);
         }
         Self { by_frame, hulls }
     }
@@ -117,13 +118,12 @@ impl MovingBoxes {
         cam: &Camera,
         pseudo: Option<&[u8]>,
     ) -> usize {
-        let Some(boxes) = self.by_frame.get(&maps.frame) else {
+        let Some((prims, objects)) = self.by_frame.get(&maps.frame) else {
             return 0;
         };
-        let prims: Vec<Primitive> = boxes.iter().map(|(b, _)| b.clone()).collect();
         let mut buf: Vec<Interval> = Vec::new();
         let mut labelled = 0;
-        for px in pixels_meeting(cam, &prims, f64::INFINITY) {
+        for px in pixels_meeting(cam, prims, f64::INFINITY) {
             let p = px as usize;
             let Some(ray) = cam.pixel_ray(px % cam.width, px / cam.width) else {
                 continue;
@@ -131,7 +131,7 @@ impl MovingBoxes {
             // Where the ray first meets a moving object: its hull where the image has no
             // pseudo labels and the object has one, else its box's entry.
             let mut first: Option<(f64, &Primitive)> = None;
-            for (b, object) in boxes {
+            for (b, object) in prims.iter().zip(objects) {
                 let t = if pseudo.is_none() && self.hulls.has(*object) {
                     self.hulls.first_hit(*object, b, &ray, &mut buf)
                 } else {
