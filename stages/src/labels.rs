@@ -88,9 +88,11 @@ pub const FENCE: u8 = 13;
 pub const VEGETATION: u8 = 21;
 pub const TERRAIN: u8 = 22;
 pub const SKY: u8 = 23;
+pub const RIDER: u8 = 25;
 pub const CAR: u8 = 26;
 pub const CARAVAN: u8 = 29;
 pub const TRAILER: u8 = 30;
+pub const BICYCLE: u8 = 33;
 pub const GATE: u8 = 35;
 pub const BOX: u8 = 41;
 

@@ -8,7 +8,8 @@
 //!    ones vanish, filled in from their surroundings;
 //! 2. boundary errors: labels are read through a smooth random displacement field;
 //! 3. confusions between similar classes (road/parking/sidewalk, vegetation/terrain,
-//!    wall/fence/building/gate, caravan/trailer/car, box/building) in smooth blotches;
+//!    wall/fence/building/gate, caravan/trailer/car, box/building, rider/bicycle) in smooth
+//!    blotches;
 //! 4. blotches of wrong labels in over-exposed regions.
 //!
 //! `s = 0` gives the ground truth back; the default `s = 1` is calibrated to about 65-70 mIoU.
@@ -18,8 +19,8 @@
 
 use super::rng::{fbm2, hash, unit, value2};
 use crate::labels::{
-    BOX, BUILDING, CAR, CARAVAN, FENCE, GATE, PARKING, ROAD, SIDEWALK, SKY, TERRAIN, TRAILER,
-    VEGETATION, WALL,
+    BICYCLE, BOX, BUILDING, CAR, CARAVAN, FENCE, GATE, PARKING, RIDER, ROAD, SIDEWALK, SKY,
+    TERRAIN, TRAILER, VEGETATION, WALL,
 };
 
 /// One image's ground truth, as the noise model sees it.
@@ -49,6 +50,8 @@ const CONFUSIONS: &[(u8, f64, &[u8])] = &[
     (CARAVAN, 0.3, &[CAR, TRAILER]),
     (TRAILER, 0.3, &[CAR, CARAVAN]),
     (BOX, 0.3, &[BUILDING, WALL]),
+    (RIDER, 0.15, &[BICYCLE]),
+    (BICYCLE, 0.3, &[RIDER]),
 ];
 
 /// Classes whose segments can be missed: (class, chance per segment at noise 1).
@@ -60,6 +63,8 @@ const MISSABLE: &[(u8, f64)] = &[
     (FENCE, 0.12),
     (GATE, 0.15),
     (WALL, 0.05),
+    (BICYCLE, 0.1),
+    (RIDER, 0.03),
 ];
 
 /// Labels that blotches in over-exposed regions take.

@@ -8,7 +8,7 @@
 //! pixel, as a real sensor integrates light over the pixel's footprint.
 
 use crate::geometry::{Bvh, Camera, DVec3, Hit, Primitive, Ray};
-use crate::labels::{is_paper_thing, INSTANCE_FACTOR, SKY};
+use crate::labels::{self, INSTANCE_FACTOR, SKY};
 
 use super::layout::{Layout, Material, Pattern};
 use super::rng::{fbm2, hash, unit, value2, value3, Purpose, Rng};
@@ -306,7 +306,8 @@ pub fn trace(world: &World, ray: &Ray) -> Sample {
         1.0
     };
     let shade = (0.45 + 0.25 * n.z.max(0.0) + direct) * ao;
-    let instance = if is_paper_thing(part.label) {
+    // KITTI-360's thing classes (the paper's five among them) keep their instances.
+    let instance = if labels::by_id(part.label).is_some_and(|l| l.has_instances) {
         part.instance
     } else {
         0

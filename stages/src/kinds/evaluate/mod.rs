@@ -195,7 +195,10 @@ const ACROSS_MODELS: &str = "perspective_fisheye";
 /// pass keeps for later.
 struct Evaluation {
     all: Group,
+    /// Per camera model, where the evaluated images have more than one; with one, its group is
+    /// `all` (scored once).
     by_model: BTreeMap<&'static str, Group>,
+    only_model: Option<&'static str>,
     /// Cross-view consistency per method, perspective LiDAR points carried into fisheye views.
     across: BTreeMap<&'static str, Consistency>,
     /// Label maps per method per evaluated image, kept for multi-view consistency.
@@ -218,10 +221,17 @@ impl Evaluation {
             moving,
             depth_bins: DepthBins::new(p.max_depth)?,
             all: Group::new(p)?,
-            by_model: models
-                .iter()
-                .map(|&m| Ok((m, Group::new(p)?)))
-                .collect::<Result<_>>()?,
+            by_model: match models {
+                [_] => BTreeMap::new(),
+                _ => models
+                    .iter()
+                    .map(|&m| Ok((m, Group::new(p)?)))
+                    .collect::<Result<_>>()?,
+            },
+            only_model: match models {
+                [m] => Some(*m),
+                _ => None,
+            },
             across: BTreeMap::new(),
             labels_of: BTreeMap::new(),
             gt: GtRows::default(),
@@ -299,15 +309,10 @@ impl Evaluation {
         // Every group this image counts in, scored in parallel: the whole, its camera model's,
         // and (with moving objects) the static and the moving part, each part's GT made in
         // its own task.
-        let mut jobs: Vec<(&mut Group, Option<bool>)> = vec![
-            (&mut self.all, None),
-            (
-                self.by_model
-                    .get_mut(camera_model(c))
-                    .expect("a group per evaluated camera model"),
-                None,
-            ),
-        ];
+        let mut jobs: Vec<(&mut Group, Option<bool>)> = vec![(&mut self.all, None)];
+        if let Some(g) = self.by_model.get_mut(camera_model(c)) {
+            jobs.push((g, None));
+        }
         if let Some(groups) = &mut self.by_motion {
             for (group, in_moving) in groups.parts.iter_mut().zip([false, true]) {
                 jobs.push((group, Some(in_moving)));
@@ -366,10 +371,9 @@ impl Evaluation {
                 };
                 let c = multiview_consistency(&view(a, ma, &da), &view(b, mb, &db), distance)?;
                 self.all.add_mc(method, &c);
-                self.by_model
-                    .get_mut(camera_model(a))
-                    .expect("a group per evaluated camera model")
-                    .add_mc(method, &c);
+                if let Some(g) = self.by_model.get_mut(camera_model(a)) {
+                    g.add_mc(method, &c);
+                }
             }
         }
         for a in eval.iter().filter(|c| camera_model(c) == "perspective") {
@@ -442,7 +446,8 @@ impl Evaluation {
         }
         let mut by_model = MetricRows::default();
         let mut model_ciou = ClassRows::default();
-        for (&model, group) in &self.by_model {
+        let groups = self.only_model.map(|m| (m, &self.all)).into_iter();
+        for (model, group) in groups.chain(self.by_model.iter().map(|(&m, g)| (m, g))) {
             group.scores(
                 |m, k, v| by_model.push(Some(model), m, k, v),
                 |m, c| model_ciou.push(Some(model), m, c),

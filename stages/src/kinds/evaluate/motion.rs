@@ -120,7 +120,8 @@ impl PartGt {
 #[cfg(test)]
 mod tests {
     use arrow::array::{Array, Float64Array};
-    use std::collections::HashSet;
+    use arrow::record_batch::RecordBatch;
+    use std::collections::{HashMap, HashSet};
 
     use super::*;
     use crate::kinds::evaluate::{testing::label_maps, Evaluate};
@@ -190,6 +191,31 @@ mod tests {
                 .map(|i| values.value(i))
                 .unwrap()
         };
+        // One camera model (the left perspective camera): its rows are the whole's.
+        let rows = |t: &RecordBatch, name: &str| {
+            let methods = tables::get_strings(t, name, "method").unwrap();
+            let metrics = tables::get_strings(t, name, "metric").unwrap();
+            let values = t["value"].as_any().downcast_ref::<Float64Array>().unwrap();
+            (0..t.num_rows())
+                .map(|i| {
+                    let v = values.is_valid(i).then(|| values.value(i).to_bits());
+                    (
+                        (methods.value(i).to_string(), metrics.value(i).to_string()),
+                        v,
+                    )
+                })
+                .collect::<Vec<_>>()
+        };
+        let whole_rows: HashMap<_, _> = rows(&wrong["metrics"], "metrics").into_iter().collect();
+        let model_rows = rows(&wrong["camera_metrics"], "camera_metrics");
+        assert!(
+            model_rows.len() > 20,
+            "{} camera_metrics rows",
+            model_rows.len()
+        );
+        for (key, v) in &model_rows {
+            assert_eq!(whole_rows.get(key), Some(v), "{key:?}");
+        }
         let whole = all(&wrong, "panoptic_nerf", "miou");
         assert!(whole > 0.5 && whole < 1.0, "{whole}");
         // Pixels of the two parts add up to the whole.

@@ -35,7 +35,10 @@ impl TypedStage for Render {
     // labels and the static depth; the same maps for a scene without moving objects.
     // 10: `adaptive: false` is `coarse_stride: 1` (one knob); the same maps.
     // 12: in images without pseudo labels, moving objects labelled from their hulls.
-    const VERSION: u32 = 12;
+    // 13: with pseudo labels, a pixel takes the nearest box of its pseudo class, not the
+    // nearest box (a rider's box overlaps its bicycle's); the same maps where boxes of
+    // one class only meet.
+    const VERSION: u32 = 13;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const MOVED: &'static [(&'static str, &'static str)] =

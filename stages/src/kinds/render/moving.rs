@@ -2,7 +2,7 @@
 //! cross a moving object's box at their own frame, so the field is the static scene's; each
 //! moving object is labelled from its box at the image's frame: a pixel whose ray enters the
 //! box before the static surface the field renders there, and whose pseudo label (where the
-//! image has them) is the box's class, takes the box's class, its instance (one id per object
+//! image has them) is the box's class, takes the class of the nearest such box, its instance (one id per object
 //! for the whole sequence) and the depth where the ray enters the box. The box is coarse; the
 //! pseudo label trims it to the object's outline, the static depth to what is in front. In an
 //! image without pseudo labels the object's hull ([`Hulls`], voted from the images with them)
@@ -129,9 +129,13 @@ impl MovingBoxes {
                 continue;
             };
             // Where the ray first meets a moving object: its hull where the image has no
-            // pseudo labels and the object has one, else its box's entry.
+            // pseudo labels and the object has one, else its box's entry; with pseudo labels,
+            // only boxes of the pixel's pseudo class (a rider's box overlaps its bicycle's).
             let mut first: Option<(f64, &Primitive)> = None;
             for (b, object) in prims.iter().zip(objects) {
+                if pseudo.is_some_and(|l| l[p] != b.label) {
+                    continue;
+                }
                 let t = if pseudo.is_none() && self.hulls.has(*object) {
                     self.hulls.first_hit(*object, b, &ray, &mut buf)
                 } else {
@@ -151,7 +155,7 @@ impl MovingBoxes {
             let entry = cam.depth(&ray, t);
             // The static surface: 0 where the field rendered no surface (sky).
             let behind = maps.depth[p] <= 0.0 || entry < f64::from(maps.depth[p]);
-            if behind && pseudo.is_none_or(|l| l[p] == b.label) {
+            if behind {
                 maps.semantic[p] = b.label;
                 maps.instance[p] = (b.label as u32 * INSTANCE_FACTOR + b.instance.min(999)) as u16;
                 maps.depth[p] = entry as f32;
@@ -166,7 +170,7 @@ impl MovingBoxes {
 mod tests {
     use super::*;
     use crate::geometry::{DAffine3, DVec3, Lens, Shape};
-    use crate::labels::{CAR, ROAD};
+    use crate::labels::{BICYCLE, CAR, RIDER, ROAD};
 
     fn maps(w: u32, h: u32, depth: f32) -> ImageMaps {
         let n = (w * h) as usize;
@@ -184,12 +188,9 @@ mod tests {
         }
     }
 
-    /// A box 1 m deep whose near face is 5 m ahead fills the middle of the view: where the
-    /// static surface is behind it the pixels take its class, instance and entry depth; where
-    /// the surface is in front (3 m) or the pseudo label says otherwise they keep theirs.
-    #[test]
-    fn a_box_labels_the_pixels_it_is_in_front_of_and_the_pseudo_label_agrees_with() {
-        let cam = Camera {
+    /// A 21 x 11 pinhole camera at the origin looking along +z (10 px a metre at 1 m).
+    fn camera() -> Camera {
+        Camera {
             width: 21,
             height: 11,
             fx: 10.0,
@@ -198,7 +199,15 @@ mod tests {
             cy: 5.5,
             lens: Lens::Pinhole,
             cam_to_world: DAffine3::IDENTITY,
-        };
+        }
+    }
+
+    /// A box 1 m deep whose near face is 5 m ahead fills the middle of the view: where the
+    /// static surface is behind it the pixels take its class, instance and entry depth; where
+    /// the surface is in front (3 m) or the pseudo label says otherwise they keep theirs.
+    #[test]
+    fn a_box_labels_the_pixels_it_is_in_front_of_and_the_pseudo_label_agrees_with() {
+        let cam = camera();
         let tf = DAffine3::from_scale_rotation_translation(
             DVec3::new(2.0, 2.0, 1.0),
             glam::DQuat::IDENTITY,
@@ -247,5 +256,47 @@ mod tests {
         let mut other = maps(21, 11, 20.0);
         other.frame = 5;
         assert_eq!(moving.overlay(&mut other, &cam, None), 0);
+    }
+
+    /// A rider's box in front of its bicycle's, both across the view: a pixel the pseudo labels
+    /// call bicycle takes the bicycle's class, instance and entry depth though the ray enters
+    /// the rider's box first; one they call rider takes the rider's.
+    #[test]
+    fn overlapping_boxes_of_two_classes_are_told_apart_by_the_pseudo_label() {
+        let cam = camera();
+        let slab = |z: f64, label: u8, instance: u32| {
+            let tf = DAffine3::from_scale_rotation_translation(
+                DVec3::new(20.0, 20.0, 1.0),
+                glam::DQuat::IDENTITY,
+                DVec3::new(0.0, 0.0, z),
+            );
+            Primitive::new(Shape::Cuboid, tf, label, instance).unwrap()
+        };
+        let moving = MovingBoxes::new(vec![
+            DynamicBox {
+                object: 25001,
+                frame: 4,
+                primitive: slab(4.5, RIDER, 1),
+            },
+            DynamicBox {
+                object: 33001,
+                frame: 4,
+                primitive: slab(5.0, BICYCLE, 1),
+            },
+        ]);
+        let mut pseudo = vec![ROAD; 21 * 11];
+        let (bike, rider) = (5 * 21 + 10, 5 * 21 + 3);
+        pseudo[bike] = BICYCLE;
+        pseudo[rider] = RIDER;
+        let mut m = maps(21, 11, 20.0);
+        assert_eq!(moving.overlay(&mut m, &cam, Some(&pseudo)), 2);
+        assert_eq!((m.semantic[bike], m.instance[bike]), (BICYCLE, 33001));
+        assert!((m.depth[bike] - 4.5).abs() < 1e-5, "{}", m.depth[bike]);
+        assert_eq!((m.semantic[rider], m.instance[rider]), (RIDER, 25001));
+        assert!((m.depth[rider] - 4.0).abs() < 1e-5, "{}", m.depth[rider]);
+        assert_eq!(
+            m.semantic.iter().filter(|&&l| l == ROAD).count(),
+            21 * 11 - 2
+        );
     }
 }

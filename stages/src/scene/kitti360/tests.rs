@@ -513,9 +513,9 @@ fn lidar_scans_project_into_the_left_camera() {
 
 /// Exports the default synthetic scene in the KITTI-360 layout and loads it back.
 fn round_trip(tag: &str, max_distance_m: f64) -> (Tables, Tables) {
-    // With its moving cars: their boxes go through the XML as dynamic objects.
+    // With its moving cars and cyclist: their boxes go through the XML as dynamic objects.
     let sp = SceneParams {
-        moving_objects: 3,
+        moving_objects: 4,
         ..SceneParams::default()
     };
     let synth = crate::scene::synthetic::in_memory::to_tables(
@@ -656,12 +656,19 @@ fn the_exported_synthetic_scene_loads_back_into_equal_tables() {
     assert!(worst < 1e-9, "{worst}");
     assert_eq!(agree, total);
 
-    // The moving cars' boxes: the same (object, frame) rows and transforms.
+    // The moving objects' boxes: the same (object, frame) rows and transforms, the cyclist's
+    // two classes among them.
     let (da, db) = (
         dynamic_boxes_from_table(&a["dynamic_boxes"]).unwrap(),
         dynamic_boxes_from_table(&b["dynamic_boxes"]).unwrap(),
     );
     assert!(da.len() > 16, "{} moving boxes", da.len());
+    for class in [labels::CAR, labels::RIDER, labels::BICYCLE] {
+        assert!(
+            db.iter().any(|b| b.primitive.label == class),
+            "no {class} box"
+        );
+    }
     assert_eq!(da.len(), db.len());
     for (x, y) in da.iter().zip(&db) {
         assert_eq!((x.object, x.frame), (y.object, y.frame));

@@ -68,9 +68,10 @@ pub struct SceneParams {
     /// Edits of the generated primitives (reclassify, move, turn, resize, delete), in order.
     /// The images and GT stay those of the street: the edits change the annotation only.
     pub edits: Vec<crate::scene::edits::Edit>,
-    /// Moving cars, 0..=3 (0: a static street, the default). In order: one ahead in the rig's
-    /// lane driving a little faster than the rig, one oncoming in the other lane, one crossing
-    /// the road ahead. Each has its own instance
+    /// Moving objects, 0..=4 (0: a static street, the default). In order: a car ahead in the
+    /// rig's lane driving a little faster than the rig, an oncoming car in the other lane, a
+    /// car crossing the road ahead, a cyclist the rig overtakes (a `bicycle` and its `rider`,
+    /// two objects, whatever `classes` says: the static street has neither). Each has its own instance
     /// id for the whole sequence, exact GT in every frame, pseudo labels with the same noise,
     /// and one box per frame (the `dynamic_boxes` table).
     pub moving_objects: u32,
@@ -250,7 +251,7 @@ impl SceneParams {
             ));
         }
         if p.moving_objects > 0 && !p.class_ids()?.contains(&labels::CAR) {
-            return bad("`moving_objects` are cars: `classes` must include `car`".into());
+            return bad("`moving_objects` begin with cars: `classes` must include `car`".into());
         }
         if p.eval_every == 0 {
             return bad("`eval_every` must be at least 1".into());

@@ -18,7 +18,7 @@ fn with_movers(n: u32) -> SceneParams {
 fn movers_scene() -> &'static (SceneParams, Generated) {
     static SCENE: OnceLock<(SceneParams, Generated)> = OnceLock::new();
     SCENE.get_or_init(|| {
-        let p = with_movers(3);
+        let p = with_movers(4);
         let g = generate(&p, &NoProgress).unwrap();
         (p, g)
     })
@@ -28,7 +28,11 @@ fn movers_scene() -> &'static (SceneParams, Generated) {
 fn movers_change_only_the_pixels_they_cover_and_no_static_primitive() {
     let (p, g) = movers_scene();
     let still = generate(&with_movers(0), &NoProgress).unwrap();
-    assert_eq!(g.layout.movers.len(), 3);
+    assert_eq!(
+        g.layout.movers.len(),
+        5,
+        "three cars, a bicycle and its rider"
+    );
     assert!(still.layout.movers.is_empty());
     // The same static street: parts, bounds, instance numbers.
     assert_eq!(g.layout.parts.len(), still.layout.parts.len());
@@ -200,7 +204,7 @@ fn moving_objects_are_checked() {
         let e = p.validate().unwrap_err().to_string();
         assert!(e.contains(needle), "{e}");
     };
-    bad(with_movers(4), "`moving_objects` must be 0..=3");
+    bad(with_movers(5), "`moving_objects` must be 0..=4");
     bad(
         SceneParams {
             classes: ["road", "terrain", "sky", "building"]
