@@ -137,7 +137,7 @@ fn bicycle(b: &mut Builder) -> u32 {
     inst
 }
 
-/// Its rider in the bicycle's frame: legs to the pedals, a torso leaning to the bars, arms, a
+/// Its rider in the bicycle's frame: legs from the saddle down, a torso, arms to the bars, a
 /// head.
 fn rider(b: &mut Builder) -> u32 {
     let inst = b.new_instance(RIDER);
