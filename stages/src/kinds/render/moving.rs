@@ -2,8 +2,10 @@
 //! cross a moving object's box at their own frame, so the field is the static scene's; each
 //! moving object is labelled from its box at the image's frame: a pixel whose ray enters the
 //! box before the static surface the field renders there, and whose pseudo label (where the
-//! image has them) is the box's class, takes the class of the nearest such box, its instance (one id per object
-//! for the whole sequence) and the depth where the ray enters the box. The box is coarse; the
+//! image has them) is the box's class, takes the class of the nearest such box, its instance
+//! (one id per object for the whole sequence) and the depth where the ray enters the box.
+//! Where boxes of two classes overlap (a rider's and its bicycle's) the pseudo label picks the
+//! box. The box is coarse; the
 //! pseudo label trims it to the object's outline, the static depth to what is in front. In an
 //! image without pseudo labels the object's hull ([`Hulls`], voted from the images with them)
 //! takes the pseudo labels' place: a pixel is the object's where its ray meets the hull before
