@@ -363,7 +363,21 @@ fn an_edit_trains_on_from_the_previous_weights_and_renders_only_what_it_changes(
     let (outcome, why) = last(&ws, "train");
     assert_eq!(outcome, Outcome::Updated, "{why}");
     assert!(
-        why.contains(": 10 steps from the previous weights"),
+        why.contains(": 10 steps from the previous weights, "),
+        "{why}"
+    );
+
+    // An edit that only removes a primitive trains the removal's budget.
+    ws.run_ok(&[
+        "--set",
+        "scene.edits=[{primitive: 93, remove: true}]",
+        "--set",
+        "train.update.removal_iterations=7",
+    ]);
+    let (outcome, why) = last(&ws, "train");
+    assert_eq!(outcome, Outcome::Updated, "{why}");
+    assert!(
+        why.contains(": 7 steps from the previous weights (`update.removal_iterations`"),
         "{why}"
     );
 

@@ -177,6 +177,14 @@ mod tests {
             bad.contains("`update.edited_share`: 1.5 must be in 0..=1"),
             "{bad}"
         );
+        let bad = Train
+            .canonical_params(&serde_json::json!({"update": {"removal_iterations": 0}}))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            bad.contains("`update.removal_iterations`: 0 must be at least 1"),
+            "{bad}"
+        );
     }
 
     /// `depth_classes` resolves names and refuses unknown ones by name.

@@ -166,6 +166,9 @@ pub(super) const MOVED: &[(&str, &str)] = &[
 pub struct UpdateParams {
     /// Steps trained after an edit, from the previous weights; the learning rate decays over them.
     pub iterations: usize,
+    /// Steps instead of `iterations` when the edit only removes primitives: the fields need
+    /// only stop seeing them, nothing new has to be learned.
+    pub removal_iterations: usize,
     /// Share of each batch drawn from the rays the edit can change (0..=1); the rest from all.
     pub edited_share: f64,
     /// The update's first learning rate as a share of `optimiser.lr` (it decays as a run's does).
@@ -176,6 +179,8 @@ impl Default for UpdateParams {
     fn default() -> Self {
         Self {
             iterations: 400,
+            // 250: a deletion labelled as well as with 400, in 65 s (docs/experiments/edits.md).
+            removal_iterations: 250,
             edited_share: 0.5,
             // 0.3: a moved box's geometry needs it at full size (docs/experiments/edits.md).
             lr_factor: 0.3,
@@ -185,10 +190,15 @@ impl Default for UpdateParams {
 
 impl UpdateParams {
     pub fn validate(&self) -> Result<()> {
-        if self.iterations == 0 {
-            return Err(StageError::Params(
-                "`update.iterations`: 0 must be at least 1".into(),
-            ));
+        for (name, n) in [
+            ("iterations", self.iterations),
+            ("removal_iterations", self.removal_iterations),
+        ] {
+            if n == 0 {
+                return Err(StageError::Params(format!(
+                    "`update.{name}`: 0 must be at least 1"
+                )));
+            }
         }
         if !(self.lr_factor.is_finite() && self.lr_factor > 0.0) {
             return Err(StageError::Params(format!(

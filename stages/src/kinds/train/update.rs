@@ -58,7 +58,10 @@ pub(super) fn update(
             redone: "trained from scratch (the scene's classes changed)".into(),
         });
     }
-    let changed = Edited::read(previous, inputs)?.extents();
+    let edit = Edited::read(previous, inputs)?;
+    let only_removes = edit.changes.added.is_empty();
+    let changed = edit.extents();
+    drop(edit);
     // Before the candidates: its passing allocations stay below theirs.
     let edited = edited_rays(&rays, &p.cameras, &changed);
     let all = candidates(&rays, &p.cameras);
@@ -73,8 +76,16 @@ pub(super) fn update(
             redone: "no ray can see the edit: the previous weights".into(),
         });
     }
+    let (iterations, budget) = if only_removes {
+        (
+            p.update.removal_iterations,
+            " (`update.removal_iterations`: the edit only removes)",
+        )
+    } else {
+        (p.update.iterations, "")
+    };
     let mut config = p.model_config();
-    config.iterations = p.update.iterations;
+    config.iterations = iterations;
     config.optimiser.lr *= p.update.lr_factor;
     let mut trainer = p.backend.trainer_from(&config, info.spec.clone(), before)?;
     let batch = p.schedule.rays_per_batch.min(all.len());
@@ -87,7 +98,7 @@ pub(super) fn update(
         (batch > from_edited).then(|| BatchOrder::over(!seed, all, batch - from_edited));
     let first = tables_last_iteration(log_before)? + 1;
     let steps = Steps {
-        iterations: p.update.iterations,
+        iterations,
         batch,
         training_rays: training,
         first,
@@ -119,9 +130,8 @@ pub(super) fn update(
     Ok(Updated {
         tables,
         redone: format!(
-            "{} steps from the previous weights, {:.0} % of each batch from the {n_edited} rays \
-             the edit can change",
-            p.update.iterations,
+            "{iterations} steps from the previous weights{budget}, {:.0} % of each batch from the \
+             {n_edited} rays the edit can change",
             100.0 * from_edited as f64 / batch as f64
         ),
     })
