@@ -166,8 +166,8 @@ pub(super) const MOVED: &[(&str, &str)] = &[
 pub struct UpdateParams {
     /// Steps trained after an edit, from the previous weights; the learning rate decays over them.
     pub iterations: usize,
-    /// Steps instead of `iterations` when the edit only removes primitives: the fields need
-    /// only stop seeing them, nothing new has to be learned.
+    /// Steps instead of `iterations` for an edit that only removes primitives. The fields need
+    /// only stop seeing them; nothing new has to be learned.
     pub removal_iterations: usize,
     /// Share of each batch drawn from the rays the edit can change (0..=1); the rest from all.
     pub edited_share: f64,
