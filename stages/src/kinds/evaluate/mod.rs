@@ -72,20 +72,18 @@ pub fn first_primitive_maps(
                 *ins = 0;
                 return;
             };
-            let hit =
-                Bvh::first_hit_of_two((bvh, prims), (moving.1, moving.0), &ray, 0.0, f64::INFINITY);
-            *meets = match hit {
-                Some((_, true)) => true,
-                _ => {
-                    !moving.0.is_empty()
-                        && moving
-                            .1
-                            .first_hit(moving.0, &ray, 0.0, f64::INFINITY)
-                            .is_some()
-                }
+            // Each set's first hit along the whole ray (the moving one says whether the ray
+            // meets a moving box at all); the nearer wins, a tie the static primitive, as in
+            // `Bvh::first_hit_of_two`.
+            let on_static = bvh.first_hit(prims, &ray, 0.0, f64::INFINITY);
+            let on_moving = moving.1.first_hit(moving.0, &ray, 0.0, f64::INFINITY);
+            *meets = on_moving.is_some();
+            let first = match (on_static, on_moving) {
+                (Some(s), Some(m)) if m.t_in < s.t_in => Some(&moving.0[m.prim as usize]),
+                (Some(s), _) => Some(&prims[s.prim as usize]),
+                (None, Some(m)) => Some(&moving.0[m.prim as usize]),
+                (None, None) => None,
             };
-            let first = hit
-                .map(|(h, is_moving)| &(if is_moving { moving.0 } else { prims })[h.prim as usize]);
             if let Some(p) = first {
                 *s = p.label;
                 *ins = (p.label as u32 * labels::INSTANCE_FACTOR + p.instance.min(999)) as u16;

@@ -255,6 +255,8 @@ mod tests {
         );
     }
 
+    /// The mask against every pixel's ray through the boxes, and the labels against the first
+    /// hit of the union of the static primitives and the boxes.
     #[test]
     fn the_moving_pixels_are_those_whose_ray_meets_a_moving_box() {
         use crate::geometry::changes::pixels_meeting;
@@ -271,8 +273,24 @@ mod tests {
         let cameras = crate::geometry::cameras_from_table(&scene["cameras"]).unwrap();
         let mut met = 0;
         for c in &cameras {
-            let (_, _, mask) =
-                super::super::first_primitive_maps(&c.cam, &prims, &bvh, moving.at(c.frame));
+            let (boxes, boxes_bvh) = moving.at(c.frame);
+            let (sem, _, mask) =
+                super::super::first_primitive_maps(&c.cam, &prims, &bvh, (boxes, boxes_bvh));
+            for (i, &s) in sem.iter().enumerate() {
+                let ray = c
+                    .cam
+                    .pixel_ray(i as u32 % c.cam.width, i as u32 / c.cam.width);
+                let first = ray.as_ref().and_then(|r| {
+                    Bvh::first_hit_of_two((&bvh, &prims), (boxes_bvh, boxes), r, 0.0, f64::INFINITY)
+                });
+                let want = match first {
+                    Some((h, true)) => boxes[h.prim as usize].label,
+                    Some((h, false)) => prims[h.prim as usize].label,
+                    None if ray.is_some() => labels::SKY,
+                    None => labels::UNLABELED,
+                };
+                assert_eq!(s, want, "frame {} camera {} pixel {i}", c.frame, c.camera);
+            }
             let mut want = vec![false; mask.len()];
             for i in pixels_meeting(&c.cam, moving.at(c.frame).0, f64::INFINITY) {
                 want[i as usize] = true;
