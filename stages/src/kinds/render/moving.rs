@@ -5,11 +5,10 @@
 //! image has them) is the box's class, takes the class of the nearest such box, its instance
 //! (one id per object for the whole sequence) and the depth where the ray enters the box.
 //! Where boxes of two classes overlap (a rider's and its bicycle's) the pseudo label picks the
-//! box. The box is coarse; the
-//! pseudo label trims it to the object's outline, the static depth to what is in front. In an
-//! image without pseudo labels the object's hull ([`Hulls`], voted from the images with them)
-//! takes the pseudo labels' place: a pixel is the object's where its ray meets the hull before
-//! the static surface, at the depth where it meets it.
+//! box. The box is coarse; the pseudo label trims it to the object's outline, the static depth
+//! to what is in front. In an image without pseudo labels the object's hull ([`Hulls`], voted
+//! from the images with them) takes the pseudo labels' place: a pixel is the object's where its
+//! ray meets the hull before the static surface, at the depth where it meets it.
 
 use std::collections::HashMap;
 
