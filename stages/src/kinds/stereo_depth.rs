@@ -7,7 +7,7 @@ use arrow::datatypes::{Float32Type, UInt32Type, UInt8Type};
 
 use crate::geometry::cameras_from_table;
 use crate::scene::io::{image_keys, scene_info};
-use crate::scene::stereo::{depth_from_disparity, disparity, grey, StereoParams};
+use crate::scene::stereo::{depth_from_disparity, grey, Matcher, StereoParams};
 use crate::stage::{
     Changed, InputSlot, Inputs, Lineage, Previous, Progress, Result, StageError, Tables,
     TypedStage, Updated,
@@ -93,6 +93,7 @@ impl TypedStage for StereoDepth {
             .collect();
         let lefts: Vec<_> = cams.iter().filter(|c| c.camera == 0).collect();
         let mut rows = Vec::new();
+        let mut matcher = Matcher::default();
         for (n, c) in lefts.iter().enumerate() {
             progress.update(n as u64, lefts.len() as u64, "matching");
             let (Some(&li), Some(&ri)) = (index.get(&(c.frame, 0)), index.get(&(c.frame, 1)))
@@ -110,7 +111,7 @@ impl TypedStage for StereoDepth {
                     c.frame
                 )));
             }
-            let disp = disparity(&grey(l), &grey(r), w, h, p);
+            let disp = matcher.disparity(&grey(l), &grey(r), w, h, p);
             let depth = depth_from_disparity(&disp, c.cam.fx, info.baseline, p.max_depth_m);
             rows.push(((c.frame, 0u8, w as u32, h as u32), depth));
         }

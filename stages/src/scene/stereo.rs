@@ -9,13 +9,18 @@
 //! lr_tolerance`), a uniqueness ratio, and parabola sub-pixel refinement. Depth `z = fx * b /
 //! d`; only `z < max_depth_m` is kept (0 = no value), as the paper keeps near-range stereo.
 //!
-//! Rows of a horizontal path are independent (rayon over rows); a vertical or diagonal path is
-//! a sweep over rows where every pixel of a row depends only on the previous row (rayon over
-//! the row's pixels). Memory: the aggregated volume is `w * h * max_disparity` u16.
+//! The aggregation is three sweeps over the volume: the horizontal paths (bands of rows in
+//! parallel), then all downward paths together and all upward ones (a row's pixels in
+//! parallel, each depending only on the row before). The path arithmetic is i16 over padded
+//! disparity vectors, so the compiler vectorises it, AVX2-wide where the CPU has it; it gives
+//! the plain per-path implementation's bytes (a test holds them equal). Memory: the cost
+//! volume `w * h * max_disparity` u8 and the aggregated one u16, kept by a [`Matcher`] from one
+//! pair to the next.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::model::fused::dispatch;
 use crate::{Result, StageError};
 
 /// Parameters of `stereo_depth`.
@@ -109,23 +114,33 @@ pub fn grey(rgb: &[u8]) -> Vec<u8> {
 /// Census transform: bit k set when neighbour k of the window is darker than the centre
 /// (clamped at the border).
 pub fn census(img: &[u8], w: usize, h: usize, r: usize) -> Vec<u64> {
+    let (side, pw) = (2 * r + 1, w + 2 * r);
     let mut out = vec![0u64; w * h];
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let c = img[y * w + x];
-            let mut bits = 0u64;
-            for dy in -(r as i64)..=r as i64 {
-                for dx in -(r as i64)..=r as i64 {
-                    if dx == 0 && dy == 0 {
+        // The window's rows, clamped, each padded by `r` border pixels on both ends: the
+        // neighbour at (dx, dy) of pixel x is then `padded[dy + r][x + dx + r]`.
+        let mut padded = vec![0u8; side * pw];
+        for (k, line) in padded.chunks_exact_mut(pw).enumerate() {
+            let yy = (y + k).saturating_sub(r).min(h - 1);
+            let src = &img[yy * w..(yy + 1) * w];
+            for (i, p) in line.iter_mut().enumerate() {
+                *p = src[i.saturating_sub(r).min(w - 1)];
+            }
+        }
+        let centre = &img[y * w..(y + 1) * w];
+        dispatch(|| {
+            for k in 0..side {
+                for j in 0..side {
+                    if k == r && j == r {
                         continue;
                     }
-                    let yy = (y as i64 + dy).clamp(0, h as i64 - 1) as usize;
-                    let xx = (x as i64 + dx).clamp(0, w as i64 - 1) as usize;
-                    bits = (bits << 1) | (img[yy * w + xx] < c) as u64;
+                    let nb = &padded[k * pw + j..k * pw + j + w];
+                    for ((o, &n), &c) in row.iter_mut().zip(nb).zip(centre) {
+                        *o = (*o << 1) | (n < c) as u64;
+                    }
                 }
             }
-            *o = bits;
-        }
+        })
     });
     out
 }
@@ -135,66 +150,124 @@ pub fn census(img: &[u8], w: usize, h: usize, r: usize) -> Vec<u64> {
 /// # Shapes
 /// `left`, `right`: `[h, w]` grey; result `[h, w]`.
 pub fn disparity(left: &[u8], right: &[u8], w: usize, h: usize, p: &StereoParams) -> Vec<f32> {
-    let nd = p.max_disparity as usize;
-    let r = p.census_radius as usize;
-    let (cl, cr) = (census(left, w, h, r), census(right, w, h, r));
-    let bits = ((2 * r + 1) * (2 * r + 1) - 1) as u16;
-    // Matching cost [h, w, nd]: left pixel x against right pixel x - d (out of view: max).
-    let mut cost = vec![bits; w * h * nd];
+    Matcher::default().disparity(left, right, w, h, p)
+}
+
+/// Semi-global matching with its two volumes (`[h, w, nd]`: costs u8, sums u16) kept from one
+/// pair to the next: fresh zeroed pages for every pair cost about a fifth of a full-size match
+/// in page faults.
+#[derive(Default)]
+pub struct Matcher {
+    cost: Vec<u8>,
+    sum: Vec<u16>,
+}
+
+impl Matcher {
+    /// [`disparity`], reusing this matcher's volumes.
+    pub fn disparity(
+        &mut self,
+        left: &[u8],
+        right: &[u8],
+        w: usize,
+        h: usize,
+        p: &StereoParams,
+    ) -> Vec<f32> {
+        let nd = p.max_disparity as usize;
+        let r = p.census_radius as usize;
+        let (cl, cr) = (census(left, w, h, r), census(right, w, h, r));
+        let n = w * h * nd;
+        let cost = &mut fit(&mut self.cost, n)[..n];
+        matching_cost(&cl, &cr, w, nd, r, cost);
+        let sum = &mut fit(&mut self.sum, n)[..n];
+        aggregate(cost, sum, w, h, nd, p.paths, p.p1, p.p2);
+        let mut disp = vec![f32::NAN; w * h];
+        disp.par_chunks_mut(w)
+            .zip(sum.par_chunks(w * nd))
+            .for_each(|(row, srow)| dispatch(|| checked_row(srow, row, nd, p)));
+        disp
+    }
+}
+
+/// `v` with at least `n` values; a new allocation has its zeroed pages faulted in in parallel
+/// (the sweeps that write them would take several times longer to fault them).
+fn fit<T: Copy + Default + Send>(v: &mut Vec<T>, n: usize) -> &mut [T] {
+    if v.len() < n {
+        *v = Vec::new();
+        *v = vec![T::default(); n];
+        let page = (4096 / std::mem::size_of::<T>()).max(1);
+        v.par_chunks_mut(page).for_each(|p| p[0] = T::default());
+    }
+    v
+}
+
+/// One row's left disparities: winner-takes-all with the uniqueness test and sub-pixel
+/// refinement, then the left-right check against the right disparities of the same volume
+/// (`d_R(x) = argmin_d sum(x + d, d)`, the smallest such `d` on ties).
+#[inline(always)]
+fn checked_row(srow: &[u16], row: &mut [f32], nd: usize, p: &StereoParams) {
+    let w = row.len();
+    for (x, o) in row.iter_mut().enumerate() {
+        if let Some(d) = winner(&srow[x * nd..x * nd + nd.min(x + 1)], p.uniqueness) {
+            *o = d;
+        }
+    }
+    // The lowest (sum, d) of every right pixel: `d` fits 9 bits (`max_disparity` <= 512).
+    let mut right = vec![u32::MAX; w];
+    for xl in 0..w {
+        let n = nd.min(xl + 1);
+        // Right pixels xl - n + 1 ..= xl, against disparities n - 1 down to 0.
+        let to = &mut right[xl + 1 - n..=xl];
+        for (r, (d, &s)) in to
+            .iter_mut()
+            .zip(srow[xl * nd..xl * nd + n].iter().enumerate().rev())
+        {
+            *r = (*r).min((s as u32) << 9 | d as u32);
+        }
+    }
+    for (x, o) in row.iter_mut().enumerate() {
+        if o.is_nan() {
+            continue;
+        }
+        let xr = (x as f32 - *o).round();
+        if xr < 0.0 {
+            *o = f32::NAN;
+            continue;
+        }
+        let dr = (right[xr as usize] & 511) as f32;
+        if (dr - *o).abs() > p.lr_tolerance {
+            *o = f32::NAN;
+        }
+    }
+}
+
+/// Writes the Hamming matching cost `[h, w, nd]` of the census images: left pixel `x` against right pixel
+/// `x - d`; where that leaves the image, the window's bit count (the largest cost).
+fn matching_cost(cl: &[u64], cr: &[u64], w: usize, nd: usize, r: usize, cost: &mut [u8]) {
+    let bits = ((2 * r + 1) * (2 * r + 1) - 1) as u8;
     cost.par_chunks_mut(w * nd)
         .enumerate()
         .for_each(|(y, row)| {
-            for x in 0..w {
-                for d in 0..nd.min(x + 1) {
-                    row[x * nd + d] = (cl[y * w + x] ^ cr[y * w + x - d]).count_ones() as u16;
+            let (l, r) = (&cl[y * w..(y + 1) * w], &cr[y * w..(y + 1) * w]);
+            dispatch(|| {
+                for (x, cx) in row.chunks_exact_mut(nd).enumerate() {
+                    let n = nd.min(x + 1);
+                    for (c, &rv) in cx[..n].iter_mut().zip(r[..=x].iter().rev()) {
+                        *c = (l[x] ^ rv).count_ones() as u8;
+                    }
+                    cx[n..].fill(bits);
                 }
-            }
+            })
         });
-    let sum = sgm_sum(&cost, w, h, nd, p.paths, p.p1, p.p2);
-    // Winner-takes-all, uniqueness and sub-pixel refinement on the left.
-    let mut disp = vec![f32::NAN; w * h];
-    disp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let s = &sum[(y * w + x) * nd..(y * w + x + 1) * nd];
-            if let Some(d) = winner(&s[..nd.min(x + 1)], p.uniqueness) {
-                *o = d;
-            }
-        }
-    });
-    // Right disparities from the same volume: d_R(x) = argmin_d sum(x + d, d).
-    let right_disp: Vec<u32> = (0..w * h)
-        .into_par_iter()
-        .map(|i| {
-            let (y, x) = (i / w, i % w);
-            (0..nd.min(w - x))
-                .min_by_key(|&d| sum[(y * w + x + d) * nd + d])
-                .unwrap_or(0) as u32
-        })
-        .collect();
-    disp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            if o.is_nan() {
-                continue;
-            }
-            let xr = x as f32 - *o;
-            let xr = xr.round();
-            if xr < 0.0 {
-                *o = f32::NAN;
-                continue;
-            }
-            let dr = right_disp[y * w + xr as usize] as f32;
-            if (dr - *o).abs() > p.lr_tolerance {
-                *o = f32::NAN;
-            }
-        }
-    });
-    disp
 }
 
 /// The matching cost `[h, w, nd]` aggregated along 8 (or 4) scanline `paths` with penalties
 /// `p1` (a one-step change) and `p2` (a larger jump): semi-global matching's summed volume.
-pub(super) fn sgm_sum(
-    cost: &[u16],
+///
+/// Three sweeps: the two horizontal paths row by row (rows in parallel), then every downward
+/// path in one pass over the rows, then every upward one (a row's pixels in parallel). A path
+/// value is at most `cost + p2` (under 1100), and eight of them fit u16.
+pub fn sgm_sum(
+    cost: &[u8],
     w: usize,
     h: usize,
     nd: usize,
@@ -202,125 +275,218 @@ pub(super) fn sgm_sum(
     p1: u16,
     p2: u16,
 ) -> Vec<u16> {
-    let mut dirs: Vec<(i64, i64)> = vec![(1, 0), (-1, 0), (0, 1), (0, -1)];
-    if paths == 8 {
-        dirs.extend([(1, 1), (-1, 1), (1, -1), (-1, -1)]);
-    }
-    let mut sum = vec![0u16; w * h * nd];
-    for &(dx, dy) in &dirs {
-        aggregate(cost, &mut sum, w, h, nd, dx, dy, p1, p2);
-    }
+    let mut sum = Vec::new();
+    fit(&mut sum, cost.len());
+    aggregate(cost, &mut sum, w, h, nd, paths, p1, p2);
     sum
 }
 
-/// The index of the lowest of `s` refined to sub-step by a parabola through its neighbours;
-/// `None` unless it beats the lowest cost more than one step away by the fraction
-/// `uniqueness`.
+/// [`sgm_sum`] written into `sum` (every value overwritten).
+#[allow(clippy::too_many_arguments)]
+fn aggregate(
+    cost: &[u8],
+    sum: &mut [u16],
+    w: usize,
+    h: usize,
+    nd: usize,
+    paths: u32,
+    p1: u16,
+    p2: u16,
+) {
+    let pen = Penalties {
+        p1: p1 as i16,
+        p2: p2 as i16,
+    };
+    /// Rows stepped together by the horizontal paths.
+    const BAND: usize = 8;
+    sum.par_chunks_mut(BAND * w * nd)
+        .zip(cost.par_chunks(BAND * w * nd))
+        .for_each(|(sums, costs)| dispatch(|| horizontal(sums, costs, w, nd, pen)));
+    // The x offset of a path's previous pixel: straight down or up, then the diagonals.
+    let dxs: &[i64] = if paths == 8 { &[0, 1, -1] } else { &[0] };
+    vertical(cost, sum, w, h, nd, true, dxs, pen);
+    vertical(cost, sum, w, h, nd, false, dxs, pen);
+}
+
+/// The aggregation penalties in the path arithmetic's type.
+#[derive(Clone, Copy)]
+struct Penalties {
+    p1: i16,
+    p2: i16,
+}
+
+/// Padding on both ends of a path's disparity vector: never the minimum (it exceeds every
+/// path value plus `p2`), and it stays in i16 when `p1` is added.
+const PAD: i16 = 16_000;
+
+/// The first pixel of a path: `L = C`. `out` is padded (`nd + 2`); returns `min L`.
+#[inline(always)]
+fn path_start(c: &[u8], out: &mut [i16]) -> i16 {
+    let out = &mut out[1..=c.len()];
+    let mut lowest = i16::MAX;
+    for (o, &c) in out.iter_mut().zip(c) {
+        *o = c as i16;
+        lowest = lowest.min(*o);
+    }
+    lowest
+}
+
+/// One step along a path: `L(p, d) = C(p, d) + min(L(p-r, d), L(p-r, d+-1) + p1, m + p2) - m`
+/// with `m = min_k L(p-r, k)` (`prev_min`). `prev` and `out` are padded; returns `min L(p)`.
+#[inline(always)]
+fn path_step(prev: &[i16], prev_min: i16, c: &[u8], out: &mut [i16], pen: Penalties) -> i16 {
+    let nd = c.len();
+    let (below, at, above) = (&prev[..nd], &prev[1..nd + 1], &prev[2..nd + 2]);
+    let out = &mut out[1..nd + 1];
+    let jump = prev_min.wrapping_add(pen.p2);
+    let mut lowest = i16::MAX;
+    for d in 0..nd {
+        let near = below[d].min(above[d]).wrapping_add(pen.p1);
+        let v = at[d].min(near).min(jump);
+        let l = (c[d] as i16).wrapping_add(v.wrapping_sub(prev_min));
+        out[d] = l;
+        lowest = lowest.min(l);
+    }
+    lowest
+}
+
+/// `sum = l` over the unpadded part of `l`.
+#[inline(always)]
+fn store(sum: &mut [u16], l: &[i16]) {
+    let n = sum.len();
+    for (s, &l) in sum.iter_mut().zip(&l[1..=n]) {
+        *s = l as u16;
+    }
+}
+
+/// `sum += l` over the unpadded part of `l`.
+#[inline(always)]
+fn accumulate(sum: &mut [u16], l: &[i16]) {
+    let n = sum.len();
+    for (s, &l) in sum.iter_mut().zip(&l[1..=n]) {
+        *s = s.wrapping_add(l as u16);
+    }
+}
+
+/// Writes the two horizontal paths of a band of rows (`[rows, w, nd]`) into `sums`. The band's rows
+/// step together, pixel by pixel: a row's next step then reads path values stored several
+/// steps before, not the ones just written (which would stall on store forwarding).
+#[inline(always)]
+fn horizontal(sums: &mut [u16], costs: &[u8], w: usize, nd: usize, pen: Penalties) {
+    let (rows, stride) = (costs.len() / (w * nd), nd + 2);
+    let (mut prev, mut cur) = (vec![PAD; rows * stride], vec![PAD; rows * stride]);
+    let (mut prev_min, mut cur_min) = (vec![0i16; rows], vec![0i16; rows]);
+    for rightwards in [true, false] {
+        for k in 0..w {
+            let x = if rightwards { k } else { w - 1 - k };
+            for row in 0..rows {
+                let at = (row * w + x) * nd;
+                let c = &costs[at..at + nd];
+                let out = &mut cur[row * stride..(row + 1) * stride];
+                cur_min[row] = if k == 0 {
+                    path_start(c, out)
+                } else {
+                    let from = &prev[row * stride..(row + 1) * stride];
+                    path_step(from, prev_min[row], c, out, pen)
+                };
+                if rightwards {
+                    store(&mut sums[at..at + nd], out);
+                } else {
+                    accumulate(&mut sums[at..at + nd], out);
+                }
+            }
+            std::mem::swap(&mut prev, &mut cur);
+            std::mem::swap(&mut prev_min, &mut cur_min);
+        }
+    }
+}
+
+/// Adds the paths that come from the row above (`down`) or below, one per x offset in `dxs`,
+/// sweeping the rows; the pixels of a row are independent, in parallel.
+#[allow(clippy::too_many_arguments)]
+fn vertical(
+    cost: &[u8],
+    sum: &mut [u16],
+    w: usize,
+    h: usize,
+    nd: usize,
+    down: bool,
+    dxs: &[i64],
+    pen: Penalties,
+) {
+    /// Pixels per parallel task.
+    const CHUNK: usize = 64;
+    let (k, stride) = (dxs.len(), nd + 2);
+    // Path vectors `[w, k, nd + 2]` of the previous and the current row, and their minima.
+    let (mut prev, mut cur) = (vec![PAD; w * k * stride], vec![PAD; w * k * stride]);
+    let (mut prev_min, mut cur_min) = (vec![0i16; w * k], vec![0i16; w * k]);
+    for i in 0..h {
+        let y = if down { i } else { h - 1 - i };
+        let crow = &cost[y * w * nd..(y + 1) * w * nd];
+        let srow = &mut sum[y * w * nd..(y + 1) * w * nd];
+        let (last, last_min) = (&prev, &prev_min);
+        cur.par_chunks_mut(CHUNK * k * stride)
+            .zip(cur_min.par_chunks_mut(CHUNK * k))
+            .zip(srow.par_chunks_mut(CHUNK * nd))
+            .enumerate()
+            .for_each(|(chunk, ((lc, mc), sc))| {
+                dispatch(|| {
+                    for (j, s) in sc.chunks_exact_mut(nd).enumerate() {
+                        let x = chunk * CHUNK + j;
+                        let c = &crow[x * nd..(x + 1) * nd];
+                        for (q, &dx) in dxs.iter().enumerate() {
+                            let out = &mut lc[(j * k + q) * stride..(j * k + q + 1) * stride];
+                            let px = x as i64 - dx;
+                            mc[j * k + q] = if i == 0 || px < 0 || px >= w as i64 {
+                                path_start(c, out)
+                            } else {
+                                let from = px as usize * k + q;
+                                path_step(
+                                    &last[from * stride..(from + 1) * stride],
+                                    last_min[from],
+                                    c,
+                                    out,
+                                    pen,
+                                )
+                            };
+                            accumulate(s, out);
+                        }
+                    }
+                })
+            });
+        std::mem::swap(&mut prev, &mut cur);
+        std::mem::swap(&mut prev_min, &mut cur_min);
+    }
+}
+
+/// The index of the lowest of `s` (the first on ties) refined to sub-step by a parabola through
+/// its neighbours; `None` unless it beats the lowest cost more than one step away by the
+/// fraction `uniqueness`.
+#[inline(always)]
 pub(super) fn winner(s: &[u16], uniqueness: f32) -> Option<f32> {
-    let (best, &bc) = s.iter().enumerate().min_by_key(|&(_, c)| *c)?;
-    let second = s
-        .iter()
-        .enumerate()
-        .filter(|&(d, _)| d + 1 < best || d > best + 1)
-        .map(|(_, &c)| c)
-        .min()
-        .unwrap_or(u16::MAX);
+    let bc = s.iter().copied().min()?;
+    let best = s.iter().position(|&c| c == bc)?;
+    let lowest = |part: &[u16]| part.iter().copied().min().unwrap_or(u16::MAX);
+    let second = lowest(&s[..best.saturating_sub(1)]).min(lowest(&s[(best + 2).min(s.len())..]));
     if (second as f32) * (1.0 - uniqueness) < bc as f32 {
         return None;
     }
+    Some(sub_step(s, best))
+}
+
+/// `best` moved to the vertex of the parabola through `s` at `best` and its two neighbours
+/// (at most half a step; unmoved at either end).
+#[inline(always)]
+fn sub_step(s: &[u16], best: usize) -> f32 {
     let mut d = best as f32;
     if best > 0 && best + 1 < s.len() {
-        let (a, b, c) = (s[best - 1] as f32, bc as f32, s[best + 1] as f32);
+        let (a, b, c) = (s[best - 1] as f32, s[best] as f32, s[best + 1] as f32);
         let den = a - 2.0 * b + c;
         if den > 0.0 {
             d += (0.5 * (a - c) / den).clamp(-0.5, 0.5);
         }
     }
-    Some(d)
-}
-
-/// Adds the path costs `L_r` of direction `(dx, dy)` to `sum`.
-///
-/// `L_r(p, d) = C(p, d) + min(L(p-r, d), L(p-r, d+-1) + p1, min_k L(p-r, k) + p2) - min_k
-/// L(p-r, k)`.
-#[allow(clippy::too_many_arguments)]
-fn aggregate(
-    cost: &[u16],
-    sum: &mut [u16],
-    w: usize,
-    h: usize,
-    nd: usize,
-    dx: i64,
-    dy: i64,
-    p1: u16,
-    p2: u16,
-) {
-    let step = |prev: Option<&[u16]>, c: &[u16], out: &mut [u16]| match prev {
-        None => out.copy_from_slice(c),
-        Some(prev) => {
-            let m = *prev.iter().min().unwrap_or(&0);
-            for d in 0..nd {
-                let mut best = prev[d];
-                if d > 0 {
-                    best = best.min(prev[d - 1].saturating_add(p1));
-                }
-                if d + 1 < nd {
-                    best = best.min(prev[d + 1].saturating_add(p1));
-                }
-                best = best.min(m.saturating_add(p2));
-                out[d] = c[d] + best - m;
-            }
-        }
-    };
-    if dy == 0 {
-        // Each row on its own, swept along x.
-        sum.par_chunks_mut(w * nd)
-            .zip(cost.par_chunks(w * nd))
-            .for_each(|(srow, crow)| {
-                let mut prev = vec![0u16; nd];
-                let mut cur = vec![0u16; nd];
-                let xs: Box<dyn Iterator<Item = usize>> = if dx > 0 {
-                    Box::new(0..w)
-                } else {
-                    Box::new((0..w).rev())
-                };
-                for (k, x) in xs.enumerate() {
-                    let c = &crow[x * nd..(x + 1) * nd];
-                    step(
-                        if k == 0 { None } else { Some(prev.as_slice()) },
-                        c,
-                        &mut cur,
-                    );
-                    for d in 0..nd {
-                        srow[x * nd + d] += cur[d];
-                    }
-                    std::mem::swap(&mut prev, &mut cur);
-                }
-            });
-        return;
-    }
-    // Row by row along y; each pixel of a row depends on the previous row at x - dx.
-    let mut prev = vec![0u16; w * nd];
-    let mut cur = vec![0u16; w * nd];
-    let ys: Vec<usize> = if dy > 0 {
-        (0..h).collect()
-    } else {
-        (0..h).rev().collect()
-    };
-    for (k, &y) in ys.iter().enumerate() {
-        cur.par_chunks_mut(nd).enumerate().for_each(|(x, out)| {
-            let c = &cost[(y * w + x) * nd..(y * w + x + 1) * nd];
-            let px = x as i64 - dx;
-            let from = (k > 0 && px >= 0 && px < w as i64)
-                .then(|| &prev[px as usize * nd..(px as usize + 1) * nd]);
-            step(from, c, out);
-        });
-        sum[y * w * nd..(y + 1) * w * nd]
-            .par_iter_mut()
-            .zip(cur.par_iter())
-            .for_each(|(s, &c)| *s += c);
-        std::mem::swap(&mut prev, &mut cur);
-    }
+    d
 }
 
 /// Depth `fx * b / d` where valid and below `max_depth`; 0 elsewhere.
@@ -337,6 +503,10 @@ pub fn depth_from_disparity(disp: &[f32], fx: f64, baseline: f64, max_depth: f64
         })
         .collect()
 }
+
+#[cfg(test)]
+#[path = "stereo_reference.rs"]
+mod reference;
 
 #[cfg(test)]
 mod tests {
@@ -399,6 +569,57 @@ mod tests {
                 .sum::<f64>()
                 / z.len() as f64;
             assert!(zerr < 0.03, "d {d}: relative depth error {zerr}");
+        }
+    }
+
+    /// The optimised matcher gives the plain implementation's bytes: every size (narrower than
+    /// the disparity range too), census radius, path count and penalty, on textured and noisy
+    /// pairs, with volumes reused from the pair before.
+    #[test]
+    fn the_matcher_gives_the_plain_implementations_bytes() {
+        let noise = |i: usize, salt: u64| (crate::scene::rng::hash(&[i as u64, salt]) % 256) as u8;
+        let cases = [
+            (96, 24, 32, 2, 8, 8, 48),
+            (37, 9, 64, 1, 8, 1, 1),
+            (61, 13, 16, 3, 4, 1000, 1000),
+            (70, 11, 24, 3, 8, 20, 1000),
+            (5, 3, 8, 2, 8, 3, 7),
+        ];
+        // One matcher for every case: its volumes, left from a larger pair, must not leak.
+        let mut matcher = Matcher::default();
+        for (i, &(w, h, nd, r, paths, p1, p2)) in cases.iter().enumerate() {
+            let p = StereoParams {
+                max_disparity: nd,
+                census_radius: r,
+                paths,
+                p1,
+                p2,
+                ..Default::default()
+            };
+            let (textured, shifted) = plane(w, h, 5.5 + i as f64);
+            let noisy: Vec<u8> = (0..w * h).map(|k| noise(k, i as u64)).collect();
+            for (l, r) in [(&textured, &shifted), (&noisy, &textured)] {
+                let got = matcher.disparity(l, r, w, h, &p);
+                let want = reference::disparity(l, r, w, h, &p);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&got),
+                    bits(&want),
+                    "case {i}: {w}x{h}, {nd} disparities"
+                );
+                assert!(
+                    got.iter().any(|d| d.is_finite()),
+                    "case {i}: nothing matched"
+                );
+            }
+            // The summed volume itself, on costs up to the sweep's largest (two census costs).
+            let cost: Vec<u8> = (0..w * h * nd as usize).map(|k| noise(k, 7) % 97).collect();
+            let wide: Vec<u16> = cost.iter().map(|&c| c as u16).collect();
+            assert_eq!(
+                sgm_sum(&cost, w, h, nd as usize, paths, p1, p2),
+                reference::sgm_sum(&wide, w, h, nd as usize, paths, p1, p2),
+                "case {i}: summed volume"
+            );
         }
     }
 

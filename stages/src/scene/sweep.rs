@@ -356,11 +356,11 @@ pub fn sweep(reference: &View, neighbours: &[View], p: &SweepParams) -> Vec<f32>
         });
     }
     // Matching cost [h, w, nd] from the two best neighbours.
-    let mut cost = vec![0u16; n * nd];
+    let mut cost = vec![0u8; n * nd];
     cost.par_chunks_mut(nd).enumerate().for_each(|(i, c)| {
         for (k, ck) in c.iter_mut().enumerate() {
             let b = best[k * n + i];
-            *ck = b[0] + b[1];
+            *ck = (b[0] + b[1]) as u8;
         }
     });
     drop(best);

@@ -33,5 +33,6 @@ mod train;
 mod work;
 
 pub use field::{supports, FusedField, PARTITIONS};
+pub(crate) use simd::dispatch;
 pub use simd::{avx2, baseline_only};
 pub use train::{FusedTrainer, EXPOSURE};
