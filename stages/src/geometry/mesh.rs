@@ -7,7 +7,9 @@
 //! number gives the inside intervals (winding > 0). A line grazing a silhouette edge yields a
 //! +1 and a -1 at the same `t`: an empty interval, dropped. Validation guarantees every edge
 //! has exactly two faces traversing it in opposite directions, which makes the signs
-//! meaningful.
+//! meaningful. A mesh of more than 8 faces groups them into clusters of up to 8 nearby faces,
+//! and a line tests only the faces of clusters whose (padded) bounds it meets; the crossings are
+//! then put back in face order, so the result is the face-by-face loop's, bit for bit (tested).
 //!
 //! Point test: the generalised winding number (sum of signed solid angles / 4 pi), independent
 //! of the ray code, so tests can use one to check the other.
@@ -25,18 +27,108 @@ use super::error::GeometryError;
 use super::ray::LocalInterval;
 
 thread_local! {
-    /// Crossings of one ray: (t, +1/-1, face normal). Reused so intersecting allocates nothing.
-    static CROSSINGS: RefCell<Vec<(f64, i32, DVec3)>> = const { RefCell::new(Vec::new()) };
+    /// Crossings of one ray: (t, +1/-1, face normal, face). Reused so intersecting allocates nothing.
+    static CROSSINGS: RefCell<Vec<(f64, i32, DVec3, u32)>> = const { RefCell::new(Vec::new()) };
 }
 
 /// Barycentric tolerance of the triangle test (relative).
 const BARY_EPS: f64 = 1e-9;
+
+/// Most faces in a cluster; a mesh with no more faces than this has none.
+const CLUSTER_FACES: usize = 8;
+
+/// Nearby faces, tested by a ray only when it meets their bounds.
+#[derive(Clone, Debug)]
+struct Cluster {
+    /// The faces' bounds, padded as `Mesh::ray_bounds` is.
+    bounds: Aabb,
+    /// Indices into `Mesh::order`.
+    faces: std::ops::Range<usize>,
+}
 
 #[derive(Clone, Debug)]
 struct Tri {
     v0: DVec3,
     e1: DVec3,
     e2: DVec3,
+}
+
+impl Tri {
+    /// Pushes the crossing of the line `o + t d` (`dl = |d|`) with this face, if any
+    /// (Moller-Trumbore with the tolerance `BARY_EPS`).
+    #[inline]
+    fn cross(&self, face: u32, o: DVec3, d: DVec3, dl: f64, out: &mut Vec<(f64, i32, DVec3, u32)>) {
+        let pvec = d.cross(self.e2);
+        let det = self.e1.dot(pvec);
+        if det.abs() <= 1e-14 * self.e1.length() * self.e2.length() * dl {
+            return; // parallel to the face: its neighbours report the crossing
+        }
+        let inv = 1.0 / det;
+        let tvec = o - self.v0;
+        let u = tvec.dot(pvec) * inv;
+        if !(-BARY_EPS..=1.0 + BARY_EPS).contains(&u) {
+            return;
+        }
+        let qvec = tvec.cross(self.e1);
+        let v = d.dot(qvec) * inv;
+        if v < -BARY_EPS || u + v > 1.0 + BARY_EPS {
+            return;
+        }
+        let t = self.e2.dot(qvec) * inv;
+        // det > 0 <=> d . (e1 x e2) < 0 <=> entering through an outward face.
+        let sign = if det > 0.0 { 1 } else { -1 };
+        out.push((t, sign, self.e1.cross(self.e2), face));
+    }
+
+    fn bounds(&self) -> Aabb {
+        let [a, b, c] = [self.v0, self.v0 + self.e1, self.v0 + self.e2];
+        Aabb::new(a.min(b).min(c), a.max(b).max(c))
+    }
+}
+
+/// The faces split at the median of their centres along the longest axis until at most
+/// [`CLUSTER_FACES`] remain together; bounds padded by `pad` (far beyond what the barycentric
+/// tolerance lets a crossing stray from its face).
+fn clusters(tris: &[Tri], pad: DVec3) -> (Vec<u32>, Vec<Cluster>) {
+    if tris.len() <= CLUSTER_FACES {
+        return (Vec::new(), Vec::new());
+    }
+    let mut order: Vec<u32> = (0..tris.len() as u32).collect();
+    let centre = |i: u32| {
+        let t = &tris[i as usize];
+        t.v0 + (t.e1 + t.e2) / 3.0
+    };
+    let mut out = Vec::new();
+    let mut todo = Vec::new();
+    todo.push(0..order.len());
+    while let Some(range) = todo.pop() {
+        let part = &mut order[range.clone()];
+        if part.len() <= CLUSTER_FACES {
+            let bounds = part
+                .iter()
+                .map(|&i| tris[i as usize].bounds())
+                .reduce(|a, b| Aabb::new(a.min.min(b.min), a.max.max(b.max)))
+                .expect("a cluster has faces");
+            out.push(Cluster {
+                bounds: Aabb::new(bounds.min - pad, bounds.max + pad),
+                faces: range,
+            });
+            continue;
+        }
+        let spread = Aabb::from_points(part.iter().map(|&i| centre(i))).extent();
+        let axis = if spread.x >= spread.y && spread.x >= spread.z {
+            0
+        } else if spread.y >= spread.z {
+            1
+        } else {
+            2
+        };
+        let mid = part.len() / 2;
+        part.select_nth_unstable_by(mid, |&a, &b| centre(a)[axis].total_cmp(&centre(b)[axis]));
+        todo.push(range.start + mid..range.end);
+        todo.push(range.start..range.start + mid);
+    }
+    (order, out)
 }
 
 /// A validated, outward-oriented mesh.
@@ -50,6 +142,10 @@ pub struct Mesh {
     ray_bounds: Aabb,
     /// Crossings closer than this in `t * |d|` are one crossing.
     merge_eps: f64,
+    /// Face indices grouped by [`Cluster`]s (a tessellated ellipsoid's line crosses few of its
+    /// 224 faces); empty for small meshes.
+    order: Vec<u32>,
+    clusters: Vec<Cluster>,
 }
 
 impl Mesh {
@@ -148,16 +244,17 @@ impl Mesh {
                     e2: c - a,
                 }
             })
-            .collect();
+            .collect::<Vec<Tri>>();
+        let pad = DVec3::splat(1e-7 * diag);
+        let (order, clusters) = clusters(&tris, pad);
         Ok(Self {
+            order,
+            clusters,
             verts: vertices.to_vec(),
             faces,
             tris,
             bounds,
-            ray_bounds: Aabb::new(
-                bounds.min - DVec3::splat(1e-7 * diag),
-                bounds.max + DVec3::splat(1e-7 * diag),
-            ),
+            ray_bounds: Aabb::new(bounds.min - pad, bounds.max + pad),
             merge_eps: 1e-9 * diag,
         })
     }
@@ -201,34 +298,30 @@ impl Mesh {
         CROSSINGS.with(|c| {
             let mut c = c.borrow_mut();
             c.clear();
-            for tri in &self.tris {
-                let pvec = d.cross(tri.e2);
-                let det = tri.e1.dot(pvec);
-                if det.abs() <= 1e-14 * tri.e1.length() * tri.e2.length() * dl {
-                    continue; // parallel to the face: its neighbours report the crossing
+            if self.clusters.is_empty() {
+                for (i, tri) in self.tris.iter().enumerate() {
+                    tri.cross(i as u32, o, d, dl, &mut c);
                 }
-                let inv = 1.0 / det;
-                let tvec = o - tri.v0;
-                let u = tvec.dot(pvec) * inv;
-                if !(-BARY_EPS..=1.0 + BARY_EPS).contains(&u) {
-                    continue;
+            } else {
+                let inv = Aabb::inv_dir(d);
+                for cl in &self.clusters {
+                    let (lo, hi) = (f64::NEG_INFINITY, f64::INFINITY);
+                    if cl.bounds.ray_overlap(o, inv, lo, hi).is_some() {
+                        for &i in &self.order[cl.faces.clone()] {
+                            self.tris[i as usize].cross(i, o, d, dl, &mut c);
+                        }
+                    }
                 }
-                let qvec = tvec.cross(tri.e1);
-                let v = d.dot(qvec) * inv;
-                if v < -BARY_EPS || u + v > 1.0 + BARY_EPS {
-                    continue;
-                }
-                let t = tri.e2.dot(qvec) * inv;
-                // det > 0 <=> d . (e1 x e2) < 0 <=> entering through an outward face.
-                let sign = if det > 0.0 { 1 } else { -1 };
-                c.push((t, sign, tri.e1.cross(tri.e2)));
+                // Back in face order: the sort below then orders ties (a crossing through an
+                // edge, seen by both faces) as the face-by-face loop did.
+                c.sort_unstable_by_key(|x| x.3);
             }
             c.sort_unstable_by(|x, y| x.0.total_cmp(&y.0).then(y.1.cmp(&x.1)));
             let eps_t = self.merge_eps / dl;
             let mut w = 0i32;
             let mut start = (0.0, DVec3::Z);
             let mut last: Option<(f64, i32)> = None;
-            for &(t, s, n) in c.iter() {
+            for &(t, s, n, _) in c.iter() {
                 if let Some((lt, ls)) = last {
                     if ls == s && t - lt <= eps_t {
                         continue; // the same crossing seen by a neighbouring triangle
@@ -248,5 +341,70 @@ impl Mesh {
                 }
             }
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::demo::{star_mesh, Rng};
+    use crate::geometry::Shape;
+
+    /// Every interval (bits of `t_in`, `t_out` and the normal) of the line `o + t d`.
+    fn intervals(m: &Mesh, o: DVec3, d: DVec3) -> Vec<[u64; 5]> {
+        let mut out = Vec::new();
+        m.intersect(o, d, &mut |li| {
+            let n = li.n_in;
+            out.push([li.t_in, li.t_out, n.x, n.y, n.z].map(f64::to_bits))
+        });
+        out
+    }
+
+    /// Testing the faces cluster by cluster gives the face-by-face loop's bytes, on lines aimed
+    /// at random points, at vertices and at edge midpoints (ties between faces).
+    #[test]
+    fn clusters_give_the_bytes_of_every_face_tested() {
+        let mut rng = Rng::new(5);
+        let ellipsoid = crate::scene::kitti360_export::local_mesh(&Shape::Ellipsoid);
+        let Shape::Mesh { vertices, faces } = star_mesh(5, 9, || rng.range(0.6, 1.4)) else {
+            unreachable!()
+        };
+        for (v, f) in [ellipsoid, (vertices, faces)] {
+            let clustered = Mesh::new(&v, &f).unwrap();
+            assert!(clustered.clusters.len() > 4, "{} faces", f.len());
+            let every_face = Mesh {
+                order: Vec::new(),
+                clusters: Vec::new(),
+                ..clustered.clone()
+            };
+            let mut targets: Vec<DVec3> = v.clone();
+            for t in &clustered.tris {
+                targets.push(t.v0 + 0.5 * t.e1);
+                targets.push(t.v0 + 0.5 * (t.e1 + t.e2));
+                targets.push(t.v0 + rng.range(0.0, 0.5) * t.e1 + rng.range(0.0, 0.5) * t.e2);
+            }
+            let mut crossed = 0;
+            for (k, target) in targets.iter().enumerate() {
+                let o = DVec3::new(
+                    rng.range(-3.0, 3.0),
+                    rng.range(-3.0, 3.0),
+                    rng.range(-3.0, 3.0),
+                );
+                let (o, d) = if k % 7 == 0 {
+                    // Axis-parallel lines through the target, as camera rays often are not.
+                    (DVec3::new(-3.0, target.y, target.z), DVec3::X)
+                } else {
+                    (o, *target - o)
+                };
+                let want = intervals(&every_face, o, d);
+                crossed += !want.is_empty() as usize;
+                assert_eq!(intervals(&clustered, o, d), want, "line {o} + t {d}");
+            }
+            assert!(
+                crossed > targets.len() / 2,
+                "{crossed} of {}",
+                targets.len()
+            );
+        }
     }
 }
