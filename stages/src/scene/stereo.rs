@@ -192,7 +192,7 @@ impl Matcher {
 /// (the sweeps that write them would take several times longer to fault them).
 fn fit<T: Copy + Default + Send>(v: &mut Vec<T>, n: usize) -> &mut [T] {
     if v.len() < n {
-        *v = Vec::new();
+        *v = Vec::new(); // the old volume goes before the new one comes
         *v = vec![T::default(); n];
         let page = (4096 / std::mem::size_of::<T>()).max(1);
         v.par_chunks_mut(page).for_each(|p| p[0] = T::default());
