@@ -263,7 +263,7 @@ fn matching_cost(cl: &[u64], cr: &[u64], w: usize, nd: usize, r: usize, cost: &m
 /// The matching cost `[h, w, nd]` aggregated along 8 (or 4) scanline `paths` with penalties
 /// `p1` (a one-step change) and `p2` (a larger jump): semi-global matching's summed volume.
 ///
-/// Three sweeps: the two horizontal paths row by row (rows in parallel), then every downward
+/// Three sweeps: the two horizontal paths (bands of rows in parallel), then every downward
 /// path in one pass over the rows, then every upward one (a row's pixels in parallel). A path
 /// value is at most `cost + p2` (under 1100), and eight of them fit u16.
 pub fn sgm_sum(
@@ -368,9 +368,8 @@ fn accumulate(sum: &mut [u16], l: &[i16]) {
     }
 }
 
-/// Writes the two horizontal paths of a band of rows (`[rows, w, nd]`) into `sums`. The band's rows
-/// step together, pixel by pixel: a row's next step then reads path values stored several
-/// steps before, not the ones just written (which would stall on store forwarding).
+/// Writes the two horizontal paths of a band of rows (`[rows, w, nd]`) into `sums`; the rows
+/// are independent and step together, pixel by pixel.
 #[inline(always)]
 fn horizontal(sums: &mut [u16], costs: &[u8], w: usize, nd: usize, pen: Penalties) {
     let (rows, stride) = (costs.len() / (w * nd), nd + 2);
