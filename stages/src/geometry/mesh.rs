@@ -27,7 +27,8 @@ use super::error::GeometryError;
 use super::ray::LocalInterval;
 
 thread_local! {
-    /// Crossings of one ray: (t, +1/-1, face normal, face). Reused so intersecting allocates nothing.
+    /// Crossings of one ray: (t, +1/-1, face normal, face). Reused so intersecting allocates
+    /// nothing.
     static CROSSINGS: RefCell<Vec<(f64, i32, DVec3, u32)>> = const { RefCell::new(Vec::new()) };
 }
 

@@ -240,8 +240,8 @@ fn checked_row(srow: &[u16], row: &mut [f32], nd: usize, p: &StereoParams) {
     }
 }
 
-/// Writes the Hamming matching cost `[h, w, nd]` of the census images: left pixel `x` against right pixel
-/// `x - d`; where that leaves the image, the window's bit count (the largest cost).
+/// Writes the Hamming matching cost `[h, w, nd]` of the census images: left pixel `x` against
+/// right pixel `x - d`; where that leaves the image, the window's bit count (the largest cost).
 fn matching_cost(cl: &[u64], cr: &[u64], w: usize, nd: usize, r: usize, cost: &mut [u8]) {
     let bits = ((2 * r + 1) * (2 * r + 1) - 1) as u8;
     cost.par_chunks_mut(w * nd)

@@ -88,8 +88,8 @@ pub fn sgm_sum(
     sum
 }
 
-/// The index of the lowest of `s` (the first on ties) refined to sub-step; `None` unless it beats the lowest cost more than one step away by the fraction
-/// `uniqueness`.
+/// The index of the lowest of `s` (the first on ties) refined to sub-step; `None` unless it
+/// beats the lowest cost more than one step away by the fraction `uniqueness`.
 fn winner(s: &[u16], uniqueness: f32) -> Option<f32> {
     let (best, &bc) = s.iter().enumerate().min_by_key(|&(_, c)| *c)?;
     let second = s
