@@ -2,7 +2,9 @@
 //! Adam) at 1024 and 4096 rays x 32 samples, per compiled-in engine and per encoding.
 //!
 //! Run: `cargo bench -p stages --bench train_step` (add `--features ndarray` to compare with
-//! burn-ndarray; `BENCH_STEPS=n` sets the timed steps, default 5, after 2 warm-up steps).
+//! burn-ndarray; `BENCH_STEPS=n` sets the timed steps, default 5, after 2 warm-up steps;
+//! `BENCH_FUSED_ONLY=1` times the fused engine only, `BENCH_NO_V1=1` without its baseline build;
+//! `BENCH_GRID=12,18,2048` the KITTI-360 pipeline's grid).
 
 use std::time::Instant;
 
@@ -58,17 +60,20 @@ fn random_batch(rays: usize, seed: u64) -> RayBatch {
 /// The fused CPU path on the default grid field, with its phase breakdown: its AVX2 kernels
 /// (`fused`) and, on a CPU that has AVX2, the same kernels for baseline x86-64 (`fused-v1`).
 fn bench_fused(steps: usize) {
-    let paths: &[bool] = if stages::model::fused::avx2() {
-        &[false, true]
-    } else {
-        &[true]
+    let paths: &[bool] = match (
+        stages::model::fused::avx2(),
+        std::env::var("BENCH_NO_V1").is_ok(),
+    ) {
+        (true, false) => &[false, true],
+        (true, true) => &[false],
+        (false, _) => &[true],
     };
     for (rays, &baseline) in [1024, 4096]
         .into_iter()
         .flat_map(|r| paths.iter().map(move |b| (r, b)))
     {
         stages::model::fused::baseline_only(baseline);
-        let field = FieldConfig::default();
+        let field = bench_field();
         let config = TrainConfig {
             field: field.clone(),
             ..Default::default()
@@ -106,6 +111,22 @@ fn bench_fused(steps: usize) {
         );
     }
     stages::model::fused::baseline_only(false);
+}
+
+/// The default field, or with `BENCH_GRID=levels,log2_table_size,max_resolution` another grid
+/// (`12,18,2048`: the KITTI-360 pipeline's).
+fn bench_field() -> FieldConfig {
+    let mut field = FieldConfig::default();
+    if let Ok(v) = std::env::var("BENCH_GRID") {
+        let n: Vec<u32> = v
+            .split(',')
+            .map(|x| x.parse().expect("BENCH_GRID"))
+            .collect();
+        field.grid.levels = n[0] as usize;
+        field.grid.log2_table_size = n[1];
+        field.grid.max_resolution = n[2];
+    }
+    field
 }
 
 fn main() {

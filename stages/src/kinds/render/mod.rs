@@ -38,7 +38,7 @@ impl TypedStage for Render {
     // 13: with pseudo labels, a pixel takes the nearest box of its pseudo class, not the
     // nearest box (a rider's box overlaps its bicycle's); the same maps where boxes of
     // one class only meet.
-    const VERSION: u32 = 13;
+    const VERSION: u32 = 14;
     const DESCRIPTION: &'static str =
         "renders semantic, fixed-field, panoptic, depth, colour and confidence maps for every image";
     const MOVED: &'static [(&'static str, &'static str)] =

@@ -29,7 +29,7 @@ impl TypedStage for Train {
     // 15: the train log has a `loss_sky_prior` column (null unless `losses.sky_prior` > 0).
     // 14: the train log has no wall-clock column (the same seed and config give the same bytes;
     // the runner times the stage); `late_jitter` (on by default) changes runs past 8 passes.
-    const VERSION: u32 = 17;
+    const VERSION: u32 = 18;
     const DESCRIPTION: &'static str =
         "fits the radiance field with dual semantic fields (L_fixed2D, L_learned2D, L_3D, L_rgb, L_depth)";
     const INPUTS: &'static [InputSlot] = &[

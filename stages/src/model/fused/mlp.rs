@@ -1,77 +1,8 @@
-//! Dense layers on flat row-major buffers: `sgemm` (matrixmultiply) for forward and backward,
-//! ReLU between layers, exactly the layout of [`crate::field::mlp::Dense`] (`y = x W + b`, `W`
+//! Dense layers on flat row-major buffers: [`gemm`] for forward and backward, ReLU between
+//! layers, exactly the layout of [`crate::field::mlp::Dense`] (`y = x W + b`, `W`
 //! is `[inputs, outputs]`).
 
-/// A strided read-only matrix view: element `(i, j)` is `data[i * rs + j * cs]`.
-#[derive(Clone, Copy)]
-pub struct View<'a> {
-    pub data: &'a [f32],
-    pub rs: usize,
-    pub cs: usize,
-}
-
-impl<'a> View<'a> {
-    /// A contiguous row-major `[_, cols]` matrix.
-    pub fn rows(data: &'a [f32], cols: usize) -> Self {
-        Self {
-            data,
-            rs: cols,
-            cs: 1,
-        }
-    }
-
-    /// The transpose of a contiguous row-major `[_, cols]` matrix.
-    pub fn transposed(data: &'a [f32], cols: usize) -> Self {
-        Self {
-            data,
-            rs: 1,
-            cs: cols,
-        }
-    }
-}
-
-/// `c = beta * c + a b` with `a: [m, k]`, `b: [k, n]`, `c: [m, n]` row-major with row stride
-/// `ldc`.
-#[allow(clippy::too_many_arguments)]
-pub fn gemm(m: usize, k: usize, n: usize, a: View, b: View, beta: f32, c: &mut [f32], ldc: usize) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    assert!(
-        k == 0 || a.data.len() > (m - 1) * a.rs + (k - 1) * a.cs,
-        "gemm: a too short"
-    );
-    assert!(
-        k == 0 || b.data.len() > (k - 1) * b.rs + (n - 1) * b.cs,
-        "gemm: b too short"
-    );
-    assert!(c.len() >= (m - 1) * ldc + n, "gemm: c too short");
-    if k == 0 {
-        c.chunks_mut(ldc)
-            .take(m)
-            .for_each(|row| row[..n].iter_mut().for_each(|v| *v *= beta));
-        return;
-    }
-    // SAFETY: the asserts above keep every index of a, b and c inside its slice.
-    unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.data.as_ptr(),
-            a.rs as isize,
-            a.cs as isize,
-            b.data.as_ptr(),
-            b.rs as isize,
-            b.cs as isize,
-            beta,
-            c.as_mut_ptr(),
-            ldc as isize,
-            1,
-        );
-    }
-}
+pub use super::gemm::{gemm, View};
 
 /// Adds `bias` to every row of `y: [rows, bias.len()]`.
 #[inline(always)]
@@ -224,49 +155,5 @@ pub fn backward(
 pub fn grow(v: &mut Vec<f32>, len: usize) {
     if v.len() < len {
         v.resize(len, 0.0);
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn naive(m: usize, k: usize, n: usize, a: View, b: View) -> Vec<f32> {
-        let mut c = vec![0f32; m * n];
-        for i in 0..m {
-            for j in 0..n {
-                for p in 0..k {
-                    c[i * n + j] += a.data[i * a.rs + p * a.cs] * b.data[p * b.rs + j * b.cs];
-                }
-            }
-        }
-        c
-    }
-
-    #[test]
-    fn gemm_matches_naive_with_strides_and_beta() {
-        let (m, k, n) = (7, 5, 3);
-        let a: Vec<f32> = (0..m * 6).map(|i| (i as f32 * 0.37).sin()).collect();
-        let b: Vec<f32> = (0..k * n).map(|i| (i as f32 * 0.11).cos()).collect();
-        // a viewed with row stride 6 and a column offset of 1
-        let av = View {
-            data: &a[1..],
-            rs: 6,
-            cs: 1,
-        };
-        let want = naive(m, k, n, av, View::rows(&b, n));
-        let mut c = vec![1f32; m * n];
-        gemm(m, k, n, av, View::rows(&b, n), 2.0, &mut c, n);
-        for (x, y) in c.iter().zip(&want) {
-            assert!((x - (y + 2.0)).abs() < 1e-5);
-        }
-        // transposed b: b^T is [n, k]
-        let bt: Vec<f32> = (0..n * k).map(|i| (i as f32 * 0.2).sin()).collect();
-        let want = naive(m, k, n, av, View::transposed(&bt, k));
-        let mut c = vec![0f32; m * n];
-        gemm(m, k, n, av, View::transposed(&bt, k), 0.0, &mut c, n);
-        for (x, y) in c.iter().zip(&want) {
-            assert!((x - y).abs() < 1e-5);
-        }
     }
 }

@@ -1,6 +1,6 @@
 //! The fused CPU path of the grid field: forward, volume rendering, the five losses, their
-//! backward pass and Adam in plain Rust over flat buffers, with `sgemm` for the dense layers and
-//! rayon across ray partitions.
+//! backward pass and Adam in plain Rust over flat buffers, with a small-matrix product
+//! ([`mlp::gemm`]) for the dense layers and rayon across ray partitions.
 //!
 //! Why: burn's CPU backends keep about one core busy and spend most of a step on small-tensor
 //! overhead; this engine computes the same function (the parameter layout and initialisation of
@@ -23,6 +23,7 @@
 #![allow(clippy::needless_range_loop)]
 
 mod field;
+mod gemm;
 mod infer;
 pub mod mlp;
 mod simd;

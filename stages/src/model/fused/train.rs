@@ -312,13 +312,18 @@ impl FusedTrainer {
                 .zip(self.moment2[k].par_chunks_mut(1 << 14))
                 .zip(g.par_chunks(1 << 14))
                 .for_each(|(((p, m), v), g)| {
-                    for i in 0..p.len() {
-                        let gi = g[i] * factor;
-                        m[i] = b1 * m[i] + (1.0 - b1) * gi;
-                        v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
-                        let update = (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
-                        p[i] -= lr * update;
-                    }
+                    dispatch(
+                        #[inline(always)]
+                        || {
+                            for i in 0..p.len() {
+                                let gi = g[i] * factor;
+                                m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                                v[i] = b2 * v[i] + (1.0 - b2) * gi * gi;
+                                let update = (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
+                                p[i] -= lr * update;
+                            }
+                        },
+                    )
                 });
         }
         for (k, g) in self.exposure_grad.iter().enumerate() {
