@@ -141,68 +141,8 @@ impl Work {
             assert_eq!(in_sky.len(), n, "in_sky must have one flag per sample");
             self.direction_only.extend_from_slice(in_sky);
         }
-        let (levels, feats) = (c.grid.levels, c.grid.features_per_level);
-        let e = levels * feats;
-        let corners = levels * 8;
-        self.idx.resize(n * corners, 0);
-        grow(&mut self.wts, n * corners);
-        grow(&mut self.enc, n * e);
-        grow(&mut self.unit, n * 3);
-        for (u, p) in self.unit.chunks_exact_mut(3).zip(positions.chunks_exact(3)) {
-            for a in 0..3 {
-                u[a] = spec.unit_coordinate(a, p[a]);
-            }
-        }
-        let table = params[f.grid];
-        // Level by level: one level's table (512 KiB by default) stays in cache while every
-        // point reads it.
-        for (l, &level) in f.levels.iter().enumerate() {
-            let idx = &mut self.idx[l * n * 8..(l + 1) * n * 8];
-            let w = &mut self.wts[l * n * 8..(l + 1) * n * 8];
-            // Corners first, then the reads: a tight gather loop keeps many loads in flight.
-            for ((idx, w), u) in idx
-                .chunks_exact_mut(8)
-                .zip(w.chunks_exact_mut(8))
-                .zip(self.unit.chunks_exact(3))
-            {
-                lookup_level(&c.grid, l, level, u, idx, w);
-            }
-            let enc = self.enc[..n * e].chunks_exact_mut(e);
-            // The default 2 features per level, unrolled: the generic loop made the whole step
-            // ~20 % slower (train_step 4096x32: 81.9 vs 101.6 ms).
-            if feats == 2 {
-                for (i, ((out, corners), w)) in enc
-                    .zip(idx.chunks_exact(8))
-                    .zip(w.chunks_exact(8))
-                    .enumerate()
-                {
-                    prefetch_rows(table, idx, i + PREFETCH_AHEAD, 2);
-                    let mut acc = [0f32; 2];
-                    for k in 0..8 {
-                        let row = corners[k] as usize * 2;
-                        acc[0] += w[k] * table[row];
-                        acc[1] += w[k] * table[row + 1];
-                    }
-                    out[l * 2..l * 2 + 2].copy_from_slice(&acc);
-                }
-            } else {
-                for (i, ((out, corners), w)) in enc
-                    .zip(idx.chunks_exact(8))
-                    .zip(w.chunks_exact(8))
-                    .enumerate()
-                {
-                    prefetch_rows(table, idx, i + PREFETCH_AHEAD, feats);
-                    let out = &mut out[l * feats..(l + 1) * feats];
-                    out.iter_mut().for_each(|v| *v = 0.0);
-                    for k in 0..8 {
-                        let row = corners[k] as usize * feats;
-                        for ft in 0..feats {
-                            out[ft] += w[k] * table[row + ft];
-                        }
-                    }
-                }
-            }
-        }
+        self.encode(f, params[f.grid], positions);
+        let e = c.grid.levels * c.grid.features_per_level;
         self.trunk.resize_with(f.trunk.len(), Vec::new);
         mlp::forward(
             &f.trunk,
@@ -279,6 +219,76 @@ impl Work {
             let out = &self.col[f.colour.len() - 1];
             for i in 0..n * 3 {
                 self.rgb[i] = sigmoid(out[i]);
+            }
+        }
+    }
+
+    /// The grid encoding of `positions` (`[n, 3]`) into `enc`, keeping each point's corner rows
+    /// and weights (`idx`, `wts`) for the backward pass.
+    #[inline(always)]
+    fn encode(&mut self, f: &FusedField, table: &[f32], positions: &[f32]) {
+        let spec = &f.spec;
+        let c = &spec.config;
+        let n = positions.len() / 3;
+        let (levels, feats) = (c.grid.levels, c.grid.features_per_level);
+        let e = levels * feats;
+        let corners = levels * 8;
+        self.idx.resize(n * corners, 0);
+        grow(&mut self.wts, n * corners);
+        grow(&mut self.enc, n * e);
+        grow(&mut self.unit, n * 3);
+        for (u, p) in self.unit.chunks_exact_mut(3).zip(positions.chunks_exact(3)) {
+            for a in 0..3 {
+                u[a] = spec.unit_coordinate(a, p[a]);
+            }
+        }
+        // Level by level: one level's table (512 KiB by default) stays in cache while every
+        // point reads it.
+        for (l, &level) in f.levels.iter().enumerate() {
+            let idx = &mut self.idx[l * n * 8..(l + 1) * n * 8];
+            let w = &mut self.wts[l * n * 8..(l + 1) * n * 8];
+            // Corners first, then the reads: a tight gather loop keeps many loads in flight.
+            for ((idx, w), u) in idx
+                .chunks_exact_mut(8)
+                .zip(w.chunks_exact_mut(8))
+                .zip(self.unit.chunks_exact(3))
+            {
+                lookup_level(&c.grid, l, level, u, idx, w);
+            }
+            let enc = self.enc[..n * e].chunks_exact_mut(e);
+            // The default 2 features per level, unrolled: the generic loop made the whole step
+            // ~20 % slower (train_step 4096x32: 81.9 vs 101.6 ms).
+            if feats == 2 {
+                for (i, ((out, corners), w)) in enc
+                    .zip(idx.chunks_exact(8))
+                    .zip(w.chunks_exact(8))
+                    .enumerate()
+                {
+                    prefetch_rows(table, idx, i + PREFETCH_AHEAD, 2);
+                    let mut acc = [0f32; 2];
+                    for k in 0..8 {
+                        let row = corners[k] as usize * 2;
+                        acc[0] += w[k] * table[row];
+                        acc[1] += w[k] * table[row + 1];
+                    }
+                    out[l * 2..l * 2 + 2].copy_from_slice(&acc);
+                }
+            } else {
+                for (i, ((out, corners), w)) in enc
+                    .zip(idx.chunks_exact(8))
+                    .zip(w.chunks_exact(8))
+                    .enumerate()
+                {
+                    prefetch_rows(table, idx, i + PREFETCH_AHEAD, feats);
+                    let out = &mut out[l * feats..(l + 1) * feats];
+                    out.iter_mut().for_each(|v| *v = 0.0);
+                    for k in 0..8 {
+                        let row = corners[k] as usize * feats;
+                        for ft in 0..feats {
+                            out[ft] += w[k] * table[row + ft];
+                        }
+                    }
+                }
             }
         }
     }
