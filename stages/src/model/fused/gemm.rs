@@ -1,9 +1,8 @@
-//! `c = beta c + a b` for the field's matrices: one side at most 64 wide (a layer's inputs or
-//! outputs), the other a partition's samples. A general sgemm packs both operands into
-//! panels first; with 16 to 32 columns that copy cost more than the products (a fifth of a
-//! training step in matrixmultiply's packing). Here a register block of `R` rows of `c` by
-//! `8 NB` columns reads `a` in place and `b` row by row, which is contiguous for every product
-//! the engine forms (a transposed weight matrix is copied once, it is small).
+//! `c = beta c + a b` for the field's matrices: one side narrow (a layer's 3 to 64 inputs or
+//! outputs), the other a partition's samples. A general sgemm first packs both operands into
+//! panels; with 16 to 32 columns the copy costs about as much as the products. Here a register
+//! block of `R` rows of `c` by `8 NB` columns reads `a` in place and `b` row by row, which is
+//! contiguous for every product the engine forms (a transposed weight matrix, small, is copied).
 //!
 //! Every element of `c` is `beta c` plus the products in increasing `p`, one multiply and one
 //! add each (Rust never fuses them into an FMA), so the baseline and the AVX2 build, and every
