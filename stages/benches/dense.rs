@@ -6,6 +6,25 @@
 
 use stages::model::fused::mlp::{gemm, View};
 use std::time::Instant;
+
+const REPS: usize = 200;
+
+/// Times `REPS` calls of `product`, after one untimed, and prints them as `macs` multiply-adds
+/// each.
+fn time(label: &str, macs: usize, mut product: impl FnMut()) {
+    product();
+    let t = Instant::now();
+    for _ in 0..REPS {
+        product();
+    }
+    let dt = t.elapsed().as_secs_f64() / REPS as f64;
+    println!(
+        "{label}: {:.3} ms  {:.1} GMAC/s",
+        dt * 1e3,
+        macs as f64 / dt / 1e9
+    );
+}
+
 fn main() {
     let n = 16384usize;
     let big: Vec<f32> = (0..n * 64).map(|i| ((i % 97) as f32) * 0.01).collect();
@@ -13,12 +32,10 @@ fn main() {
     let w: Vec<f32> = (0..64 * 64).map(|i| ((i % 13) as f32) * 0.1).collect();
     let mut c = vec![0f32; n * 64];
     let mut small = vec![0f32; 64 * 64];
-    let reps = 200;
-    println!("dense: {n} rows, {reps} repetitions, one thread");
+    println!("dense: {n} rows, {REPS} repetitions, one thread");
     // forward: [n, k] x [k, o]
     for (k, o) in [(16, 32), (32, 16), (15, 32), (32, 10), (32, 3)] {
-        let t = Instant::now();
-        for _ in 0..reps {
+        time(&format!("fwd  k={k:2} o={o:2}"), n * k * o, || {
             gemm(
                 n,
                 k,
@@ -28,19 +45,12 @@ fn main() {
                 0.0,
                 &mut c,
                 o,
-            );
-        }
-        let dt = t.elapsed().as_secs_f64() / reps as f64;
-        println!(
-            "fwd  k={k:2} o={o:2}: {:.3} ms  {:.1} GMAC/s",
-            dt * 1e3,
-            (n * k * o) as f64 / dt / 1e9
-        );
+            )
+        });
     }
-    // dx: [n, o] x W^T [o, i]
+    // input gradient: [n, o] x W^T [o, i]
     for (o, i) in [(16, 32), (10, 32), (32, 15), (3, 32), (32, 16)] {
-        let t = Instant::now();
-        for _ in 0..reps {
+        time(&format!("dx   o={o:2} i={i:2}"), n * i * o, || {
             gemm(
                 n,
                 o,
@@ -50,19 +60,12 @@ fn main() {
                 0.0,
                 &mut c,
                 i,
-            );
-        }
-        let dt = t.elapsed().as_secs_f64() / reps as f64;
-        println!(
-            "dx   o={o:2} i={i:2}: {:.3} ms  {:.1} GMAC/s",
-            dt * 1e3,
-            (n * i * o) as f64 / dt / 1e9
-        );
+            )
+        });
     }
-    // dW: x^T [i, n] x dy [n, o]
+    // weight gradient: x^T [i, n] x dy [n, o]
     for (i, o) in [(16, 32), (32, 16), (15, 32), (32, 10), (32, 3)] {
-        let t = Instant::now();
-        for _ in 0..reps {
+        time(&format!("dW   i={i:2} o={o:2}"), n * i * o, || {
             gemm(
                 i,
                 n,
@@ -72,13 +75,7 @@ fn main() {
                 1.0,
                 &mut small,
                 o,
-            );
-        }
-        let dt = t.elapsed().as_secs_f64() / reps as f64;
-        println!(
-            "dW   i={i:2} o={o:2}: {:.3} ms  {:.1} GMAC/s",
-            dt * 1e3,
-            (n * i * o) as f64 / dt / 1e9
-        );
+            )
+        });
     }
 }
