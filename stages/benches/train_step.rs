@@ -120,8 +120,13 @@ fn bench_field() -> FieldConfig {
     if let Ok(v) = std::env::var("BENCH_GRID") {
         let n: Vec<u32> = v
             .split(',')
-            .map(|x| x.parse().expect("BENCH_GRID"))
+            .map(|x| x.parse().expect("BENCH_GRID: three integers"))
             .collect();
+        assert_eq!(
+            n.len(),
+            3,
+            "BENCH_GRID: levels,log2_table_size,max_resolution"
+        );
         field.grid.levels = n[0] as usize;
         field.grid.log2_table_size = n[1];
         field.grid.max_resolution = n[2];

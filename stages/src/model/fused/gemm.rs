@@ -8,7 +8,7 @@
 //! add each (Rust never fuses them into an FMA), so the baseline and the AVX2 build, and every
 //! block shape, give the same bits.
 
-use super::simd::avx2;
+use super::simd::dispatch;
 
 /// A strided read-only matrix view: element `(i, j)` is `data[i * rs + j * cs]`.
 #[derive(Clone, Copy)]
@@ -119,12 +119,10 @@ pub fn gemm(m: usize, k: usize, n: usize, a: View, b: View, beta: f32, c: &mut [
 
 /// The AVX2 build where the CPU has it, else the baseline one.
 fn run(args: &Args, c: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if avx2() {
-        // SAFETY: `avx2()` checked that this CPU has AVX2 and FMA.
-        return unsafe { gemm_avx2(args, c) };
-    }
-    gemm_blocks(args, c)
+    dispatch(
+        #[inline(always)]
+        || gemm_blocks(args, c),
+    )
 }
 
 /// The operands of one product, checked by [`gemm`]: `b` is row-major with row stride `b_rs`
@@ -141,12 +139,6 @@ struct Args<'a> {
     c_rs: usize,
     c_cs: usize,
     beta: f32,
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn gemm_avx2(args: &Args, c: &mut [f32]) {
-    gemm_blocks(args, c)
 }
 
 /// Column blocks of up to [`BLOCK_COLS`], each swept over the rows of `c` by register blocks:
