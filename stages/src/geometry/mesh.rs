@@ -7,9 +7,10 @@
 //! number gives the inside intervals (winding > 0). A line grazing a silhouette edge yields a
 //! +1 and a -1 at the same `t`: an empty interval, dropped. Validation guarantees every edge
 //! has exactly two faces traversing it in opposite directions, which makes the signs
-//! meaningful. A mesh of more than 8 faces groups them into clusters of up to 8 nearby faces,
-//! and a line tests only the faces of clusters whose (padded) bounds it meets; the crossings are
-//! then put back in face order, so the result is the face-by-face loop's, bit for bit (tested).
+//! meaningful. A mesh of more than 8 faces splits them in halves down to clusters of up to 8
+//! nearby faces, and a line tests only the faces under nodes whose (padded) bounds it meets; the
+//! crossings are then put back in face order, so the result is the face-by-face loop's, bit for
+//! bit (tested).
 //!
 //! Point test: the generalised winding number (sum of signed solid angles / 4 pi), independent
 //! of the ray code, so tests can use one to check the other.
@@ -38,13 +39,16 @@ const BARY_EPS: f64 = 1e-9;
 /// Most faces in a cluster; a mesh with no more faces than this has none.
 const CLUSTER_FACES: usize = 8;
 
-/// Nearby faces, tested by a ray only when it meets their bounds.
+/// A node of the hierarchy over a mesh's faces, in depth-first order: a line tests a leaf's
+/// faces, or an inner node's subtree, only when it meets the node's bounds.
 #[derive(Clone, Debug)]
 struct Cluster {
-    /// The faces' bounds, padded as `Mesh::ray_bounds` is.
+    /// The bounds of the faces below, padded as `Mesh::ray_bounds` is.
     bounds: Aabb,
-    /// Indices into `Mesh::order`.
+    /// A leaf's indices into `Mesh::order`; empty for an inner node.
     faces: std::ops::Range<usize>,
+    /// The node after this one's subtree: where a line that misses `bounds` goes on.
+    skip: u32,
 }
 
 #[derive(Clone, Debug)]
@@ -52,6 +56,8 @@ struct Tri {
     v0: DVec3,
     e1: DVec3,
     e2: DVec3,
+    /// `1e-14 |e1| |e2|`: times `|d|`, the smallest `|det|` not taken for parallel.
+    parallel: f64,
 }
 
 impl Tri {
@@ -61,7 +67,7 @@ impl Tri {
     fn cross(&self, face: u32, o: DVec3, d: DVec3, dl: f64, out: &mut Vec<(f64, i32, DVec3, u32)>) {
         let pvec = d.cross(self.e2);
         let det = self.e1.dot(pvec);
-        if det.abs() <= 1e-14 * self.e1.length() * self.e2.length() * dl {
+        if det.abs() <= self.parallel * dl {
             return; // parallel to the face: its neighbours report the crossing
         }
         let inv = 1.0 / det;
@@ -88,35 +94,42 @@ impl Tri {
 }
 
 /// The faces split at the median of their centres along the longest axis until at most
-/// [`CLUSTER_FACES`] remain together; bounds padded by `pad` (far beyond what the barycentric
-/// tolerance lets a crossing stray from its face).
+/// [`CLUSTER_FACES`] remain together, every split a node; bounds padded by `pad` (far beyond what
+/// the barycentric tolerance lets a crossing stray from its face).
 fn clusters(tris: &[Tri], pad: DVec3) -> (Vec<u32>, Vec<Cluster>) {
     if tris.len() <= CLUSTER_FACES {
         return (Vec::new(), Vec::new());
     }
     let mut order: Vec<u32> = (0..tris.len() as u32).collect();
+    let mut out = Vec::new();
+    split(tris, pad, &mut order, 0, &mut out);
+    (order, out)
+}
+
+/// Appends the subtree over `order` (which starts at `start` in the whole order) to `out`.
+fn split(tris: &[Tri], pad: DVec3, order: &mut [u32], start: usize, out: &mut Vec<Cluster>) {
     let centre = |i: u32| {
         let t = &tris[i as usize];
         t.v0 + (t.e1 + t.e2) / 3.0
     };
-    let mut out = Vec::new();
-    let mut todo = Vec::new();
-    todo.push(0..order.len());
-    while let Some(range) = todo.pop() {
-        let part = &mut order[range.clone()];
-        if part.len() <= CLUSTER_FACES {
-            let bounds = part
-                .iter()
-                .map(|&i| tris[i as usize].bounds())
-                .reduce(|a, b| Aabb::new(a.min.min(b.min), a.max.max(b.max)))
-                .expect("a cluster has faces");
-            out.push(Cluster {
-                bounds: Aabb::new(bounds.min - pad, bounds.max + pad),
-                faces: range,
-            });
-            continue;
-        }
-        let spread = Aabb::from_points(part.iter().map(|&i| centre(i))).extent();
+    let bounds = order
+        .iter()
+        .map(|&i| tris[i as usize].bounds())
+        .reduce(|a, b| Aabb::new(a.min.min(b.min), a.max.max(b.max)))
+        .expect("a cluster has faces");
+    let node = out.len();
+    let leaf = order.len() <= CLUSTER_FACES;
+    out.push(Cluster {
+        bounds: Aabb::new(bounds.min - pad, bounds.max + pad),
+        faces: if leaf {
+            start..start + order.len()
+        } else {
+            start..start
+        },
+        skip: 0,
+    });
+    if !leaf {
+        let spread = Aabb::from_points(order.iter().map(|&i| centre(i))).extent();
         let axis = if spread.x >= spread.y && spread.x >= spread.z {
             0
         } else if spread.y >= spread.z {
@@ -124,12 +137,13 @@ fn clusters(tris: &[Tri], pad: DVec3) -> (Vec<u32>, Vec<Cluster>) {
         } else {
             2
         };
-        let mid = part.len() / 2;
-        part.select_nth_unstable_by(mid, |&a, &b| centre(a)[axis].total_cmp(&centre(b)[axis]));
-        todo.push(range.start + mid..range.end);
-        todo.push(range.start..range.start + mid);
+        let mid = order.len() / 2;
+        order.select_nth_unstable_by(mid, |&a, &b| centre(a)[axis].total_cmp(&centre(b)[axis]));
+        let (lo, hi) = order.split_at_mut(mid);
+        split(tris, pad, lo, start, out);
+        split(tris, pad, hi, start + mid, out);
     }
-    (order, out)
+    out[node].skip = out.len() as u32;
 }
 
 /// A validated, outward-oriented mesh.
@@ -239,10 +253,12 @@ impl Mesh {
             .iter()
             .map(|f| {
                 let [a, b, c] = f.map(|i| vertices[i as usize]);
+                let (e1, e2) = (b - a, c - a);
                 Tri {
                     v0: a,
-                    e1: b - a,
-                    e2: c - a,
+                    e1,
+                    e2,
+                    parallel: 1e-14 * e1.length() * e2.length(),
                 }
             })
             .collect::<Vec<Tri>>();
@@ -305,12 +321,16 @@ impl Mesh {
                 }
             } else {
                 let inv = Aabb::inv_dir(d);
-                for cl in &self.clusters {
-                    let (lo, hi) = (f64::NEG_INFINITY, f64::INFINITY);
+                let (lo, hi) = (f64::NEG_INFINITY, f64::INFINITY);
+                let mut k = 0;
+                while let Some(cl) = self.clusters.get(k) {
                     if cl.bounds.ray_overlap(o, inv, lo, hi).is_some() {
                         for &i in &self.order[cl.faces.clone()] {
                             self.tris[i as usize].cross(i, o, d, dl, &mut c);
                         }
+                        k += 1;
+                    } else {
+                        k = cl.skip as usize;
                     }
                 }
                 // Back in face order: the sort below then orders ties (a crossing through an
