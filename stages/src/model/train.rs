@@ -78,11 +78,22 @@ pub trait Trainer {
 pub fn fit(
     trainer: &mut dyn Trainer,
     iterations: usize,
-    mut batch: impl FnMut(usize) -> Result<RayBatch, TrainError>,
+    mut batch: impl FnMut(usize) -> Result<RayBatch, TrainError> + Send,
     mut on_step: impl FnMut(&LossTerms),
 ) -> Result<(), TrainError> {
+    // The next batch is built on a thread of its own while a step trains: its rays do not depend
+    // on the weights, and its parallel parts fill the moments the step leaves a core idle.
+    let mut next = Some(batch(0));
     for it in 0..iterations {
-        let losses = trainer.step(&batch(it)?)?;
+        let current = next.take().expect("a batch for every step")?;
+        let losses = std::thread::scope(|s| {
+            let builder = (it + 1 < iterations).then(|| s.spawn(|| batch(it + 1)));
+            let losses = trainer.step(&current);
+            if let Some(b) = builder {
+                next = Some(b.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+            }
+            losses
+        })?;
         on_step(&losses);
     }
     Ok(())

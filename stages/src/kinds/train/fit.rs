@@ -180,7 +180,7 @@ impl Steps {
         p: &TrainParams,
         rays: &ImageRays,
         trainer: &mut dyn crate::model::Trainer,
-        mut ids_at: impl FnMut(usize) -> Vec<u32>,
+        mut ids_at: impl FnMut(usize) -> Vec<u32> + Send,
         log: &mut LogColumns,
         progress: &dyn Progress,
     ) -> Result<()> {
