@@ -11,6 +11,7 @@ use glam::DQuat;
 
 use super::moving::MovingLabels;
 use super::params::{Colour, NovelView, RenderParams, NOVEL_CAMERA_BASE};
+use super::writer::MapWriter;
 use crate::geometry::{self, changes::pixels_meeting, changes::ChangeView, Camera, CameraRow};
 use crate::geometry::{DAffine3, DVec3, Primitive};
 use crate::intervals::{plan_image, ImagePlan, IntersectParams};
@@ -108,8 +109,31 @@ pub(super) fn render_all(
     p: &RenderParams,
     inputs: &Inputs,
     progress: &dyn Progress,
-    mut previously: Option<Previously>,
+    previously: Option<Previously>,
 ) -> Result<(Tables, Rendered)> {
+    let seq = sequence(inputs)?;
+    let out = inputs.writer("label_maps")?;
+    let (out, counts) = std::thread::scope(|s| {
+        let mut writer = MapWriter::start(s, out, &seq);
+        let counts = render_into(p, inputs, progress, previously, &mut writer);
+        // A failed write reaches `render_into` as its error: the first error is the one told.
+        let out = writer.finish();
+        Ok::<_, StageError>((out, counts?))
+    })?;
+    let out = out?;
+    let mut tables = Tables::new();
+    out.finish_into(&mut tables)?;
+    Ok((tables, counts))
+}
+
+/// [`render_all`]'s images, their rows sent to `out`.
+fn render_into<'t>(
+    p: &RenderParams,
+    inputs: &Inputs,
+    progress: &dyn Progress,
+    mut previously: Option<Previously<'t>>,
+    out: &mut MapWriter<'_, 't>,
+) -> Result<Rendered> {
     let cams = geometry::cameras_from_table(inputs.table("scene", "cameras")?)?;
     let prims = geometry::primitives_from_table(inputs.table("scene", "primitives")?)?;
     let info = PrimInfo::of(&prims);
@@ -168,9 +192,7 @@ pub(super) fn render_all(
     for &(_, key) in &planned {
         total += pixels(&camera_of(key)?.cam);
     }
-    let seq = sequence(inputs)?;
     let moving = MovingLabels::new(inputs, &cams)?;
-    let mut out = inputs.writer("label_maps")?;
     // The lens mask of each camera, kept while its intrinsics stay the same.
     let mut masks: HashMap<u8, (Camera, Vec<bool>)> = HashMap::new();
     let (mut done, mut sky_sum) = (0u64, [0f32; 3]);
@@ -185,7 +207,7 @@ pub(super) fn render_all(
         };
         // A kept image is copied as stored, unread (its sky colour only matters to novel views).
         if let (Part::Keep(maps, before), true) = (&part, novel.is_empty()) {
-            out.write_from(maps, *before, &[])?;
+            out.copy(maps, *before)?;
             counts.images += 1;
             counts.pixels += n as u64;
             done += n as u64;
@@ -202,19 +224,9 @@ pub(super) fn render_all(
         let mask = lens_mask_of(&mut masks, camera, cam);
         let sky_in = SkyColour::FromInput(rgb);
         let labels = moving.pseudo_labels(frame, camera, n)?;
-        let sky = counts.render(
-            &r,
-            &rays,
-            mask,
-            (frame, camera),
-            sky_in,
-            part,
-            &mut out,
-            &seq,
-            |m| {
-                moving.boxes.overlay(m, cam, labels.as_deref());
-            },
-        )?;
+        let sky = counts.render(&r, &rays, mask, (frame, camera), sky_in, part, out, |m| {
+            moving.boxes.overlay(m, cam, labels.as_deref());
+        })?;
         for (acc, v) in sky_sum.iter_mut().zip(sky) {
             *acc += v;
         }
@@ -240,8 +252,7 @@ pub(super) fn render_all(
                 (*frame, *camera),
                 SkyColour::Fixed(scene_sky),
                 part,
-                &mut out,
-                &seq,
+                out,
                 |m| {
                     moving.boxes.overlay(m, cam, None);
                 },
@@ -250,9 +261,7 @@ pub(super) fn render_all(
             progress.update(done, total, &format!("novel view {camera}"));
         }
     }
-    let mut tables = Tables::new();
-    out.finish_into(&mut tables)?;
-    Ok((tables, counts))
+    Ok(counts)
 }
 
 /// The lens mask of `cam` (camera `camera`), from `masks` while its intrinsics stay the same.
@@ -294,16 +303,15 @@ impl Rendered {
     /// Renders one image as `part` says into `out`, counting what it rendered; returns the
     /// image's sky colour.
     #[allow(clippy::too_many_arguments)]
-    fn render(
+    fn render<'t>(
         &mut self,
         r: &Renderer,
         rays: &PlannedImage,
         in_lens: &[bool],
         (frame, camera): (u32, u8),
         sky: SkyColour,
-        part: Part,
-        out: &mut crate::stage::TableWriter,
-        seq: &str,
+        part: Part<'t>,
+        out: &mut MapWriter<'_, 't>,
         moving: impl FnOnce(&mut ImageMaps),
     ) -> Result<[f32; 3]> {
         let n = rays.cam.width as u64 * rays.cam.height as u64;
@@ -311,7 +319,7 @@ impl Rendered {
         self.pixels += n;
         let (mut maps, sky) = match part {
             Part::Keep(maps, before) => {
-                out.write_from(maps, before, &[])?;
+                out.copy(maps, before)?;
                 return sky_colour(rays, in_lens, sky).map_err(|e| {
                     StageError::Input(format!("images: frame {frame} camera {camera}: {e}"))
                 });
@@ -332,7 +340,7 @@ impl Rendered {
             }
         };
         moving(&mut maps);
-        out.write(label_maps_row(seq, maps)?)?;
+        out.maps(maps)?;
         Ok(sky)
     }
 }
@@ -374,26 +382,6 @@ fn novel_cameras(cams: &[CameraRow], views: &[NovelView]) -> Result<Vec<(u32, u8
             Ok((v.frame, NOVEL_CAMERA_BASE + k as u8, cam))
         })
         .collect()
-}
-
-/// The `label_maps` row of one rendered image.
-pub(super) fn label_maps_row(sequence: &str, m: ImageMaps) -> Result<RecordBatch> {
-    tables::build(
-        "label_maps",
-        vec![
-            tables::strings([sequence]),
-            tables::prim::<UInt32Type>([m.frame]),
-            tables::prim::<UInt8Type>([m.camera]),
-            tables::prim::<UInt32Type>([m.width]),
-            tables::prim::<UInt32Type>([m.height]),
-            tables::list::<UInt8Type>([m.semantic]),
-            tables::list::<UInt8Type>([m.fixed]),
-            tables::list::<UInt16Type>([m.instance]),
-            tables::list::<Float32Type>([m.depth]),
-            tables::list::<Float32Type>([m.confidence]),
-            tables::binary([m.rgb]),
-        ],
-    )
 }
 
 /// The frames of a plan, as `first..last` ranges.

@@ -11,6 +11,7 @@ mod images;
 mod moving;
 mod params;
 mod update;
+mod writer;
 
 use std::path::{Path, PathBuf};
 
