@@ -83,7 +83,7 @@ pub fn fit(
 ) -> Result<(), TrainError> {
     // The next batch is built on a thread of its own while a step trains: its rays do not depend
     // on the weights, and its parallel parts fill the moments the step leaves a core idle.
-    let mut next = Some(batch(0));
+    let mut next = (iterations > 0).then(|| batch(0));
     for it in 0..iterations {
         let current = next.take().expect("a batch for every step")?;
         let losses = std::thread::scope(|s| {
