@@ -52,6 +52,29 @@ pub fn stage_key(
         .to_string()
 }
 
+/// The key of an entry updated from a parent (whose key is among `inputs`): as
+/// [`stage_key`], with the kind's update version where it is not 0.
+pub fn update_key(
+    kind: &str,
+    (version, update_version): (u32, u32),
+    params: &Value,
+    inputs: &BTreeMap<String, String>,
+) -> String {
+    if update_version == 0 {
+        return stage_key(kind, version, params, inputs);
+    }
+    let canonical = json!({
+        "kind": kind,
+        "version": version,
+        "update_version": update_version,
+        "params": params,
+        "inputs": inputs,
+    });
+    blake3::hash(canonical.to_string().as_bytes())
+        .to_hex()
+        .to_string()
+}
+
 /// Digest of a stage's outputs from its files' digests (file name -> hex blake3).
 pub fn output_digest(files: &BTreeMap<String, String>) -> String {
     let mut h = blake3::Hasher::new();
@@ -83,6 +106,19 @@ mod tests {
             key,
             "f254a7120c81803451b8a904a89dd1fbad4a75cb97dc020fec0eed974e29b5ba"
         );
+    }
+
+    /// An update's code version keys updates alone; at 0 an update keys as before it existed.
+    #[test]
+    fn the_update_version_keys_updates_only() {
+        let params = json!({"x": 1});
+        let inputs = BTreeMap::from([(PARENT_SLOT.to_string(), "cd".repeat(32))]);
+        let plain = stage_key("k", 3, &params, &inputs);
+        assert_eq!(update_key("k", (3, 0), &params, &inputs), plain);
+        let one = update_key("k", (3, 1), &params, &inputs);
+        assert_ne!(one, plain);
+        assert_ne!(one, update_key("k", (3, 2), &params, &inputs));
+        assert_eq!(one, update_key("k", (3, 1), &params, &inputs));
     }
 
     #[test]

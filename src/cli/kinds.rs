@@ -6,8 +6,12 @@ use stages::{params_doc, InputSlot, Stage};
 /// `pipe kinds KIND`: the kind, its inputs and outputs, and one line per parameter (groups
 /// headed by their doc).
 pub fn text(k: &dyn Stage) -> String {
+    let updates = match k.update_version() {
+        0 => String::new(),
+        v => format!(", update version {v}"),
+    };
     let mut out = format!(
-        "{} (version {}): {}\n",
+        "{} (version {}{updates}): {}\n",
         k.kind(),
         k.version(),
         k.description()

@@ -320,7 +320,8 @@ pub fn updated_key(
         .map(|(k, v)| (k.clone(), v.digest.clone()))
         .collect();
     // An update's key holds every param, those that say how to update included.
-    let key = fingerprint::stage_key(s.kind.kind(), s.kind.version(), &s.params, &by_digest);
+    let versions = (s.kind.version(), s.kind.update_version());
+    let key = fingerprint::update_key(s.kind.kind(), versions, &s.params, &by_digest);
     (key, inputs)
 }
 

@@ -211,6 +211,9 @@ pub trait Stage: Send + Sync {
     fn kind(&self) -> &'static str;
     /// Code version: bump whenever outputs change for the same inputs and params.
     fn version(&self) -> u32;
+    /// Version of the update's code ([`TypedStage::UPDATE_VERSION`]): part of an update's key
+    /// only.
+    fn update_version(&self) -> u32;
     fn description(&self) -> &'static str;
     fn inputs(&self) -> &'static [InputSlot];
     /// Names of the tables this kind writes (each has `data_schema/<name>.json`).
@@ -292,6 +295,10 @@ pub trait TypedStage: Send + Sync {
     const MOVED: &'static [(&'static str, &'static str)] = &[];
     /// See [`Stage::updates`]; a kind that sets it implements [`TypedStage::update`].
     const UPDATES: bool = false;
+    /// Bump when [`TypedStage::update`] writes other bytes from the same parent and inputs while
+    /// a run from scratch writes the same: updated entries go stale, runs from scratch stay
+    /// cached (0: the update's key is that of its inputs, parent and `VERSION` alone).
+    const UPDATE_VERSION: u32 = 0;
     /// Top-level params that say only how an update works and change nothing a run from scratch
     /// writes: left out of the key of a run from scratch (so setting them, or adding them to a
     /// kind, leaves every cached entry current), part of an update's key, and a parent may have
@@ -371,6 +378,9 @@ impl<T: TypedStage> Stage for T {
     }
     fn version(&self) -> u32 {
         T::VERSION
+    }
+    fn update_version(&self) -> u32 {
+        T::UPDATE_VERSION
     }
     fn description(&self) -> &'static str {
         T::DESCRIPTION

@@ -308,6 +308,39 @@ impl<T: Copy + Ord> BatchOrder<T> {
     }
 }
 
+/// `k` of the `n` values `values` yields, chosen uniformly without replacement (Knuth's
+/// selection sampling, algorithm S), in the order given; all of them when `k >= n`. A short run
+/// over tens of millions of rays draws from such a sample what a shuffle of all of them would
+/// give in law, without holding them all.
+pub fn selection_sample<T>(
+    seed: u64,
+    n: usize,
+    k: usize,
+    values: impl Iterator<Item = T>,
+) -> Vec<T> {
+    if k >= n {
+        let mut all = Vec::with_capacity(n);
+        all.extend(values.take(n));
+        return all;
+    }
+    let mut rng = SplitMix64::new(seed);
+    let mut out = Vec::with_capacity(k);
+    let mut left = n;
+    for v in values {
+        if out.len() == k || left == 0 {
+            break;
+        }
+        // Each of the `left` values still to come is taken with the chance that the ones
+        // still wanted give: every k-subset comes out equally likely.
+        if rng.below(left) < k - out.len() {
+            out.push(v);
+        }
+        left -= 1;
+    }
+    debug_assert_eq!(out.len(), k, "fewer than n values");
+    out
+}
+
 fn gather<T: Copy>(values: &[T], indices: &[usize], width: usize) -> Vec<T> {
     let mut out = Vec::with_capacity(indices.len() * width);
     for &i in indices {
@@ -350,6 +383,39 @@ mod tests {
                 .collect();
             assert_eq!(order.batch(it), &expected[..], "iteration {it}");
         }
+    }
+
+    #[test]
+    fn a_selection_sample_takes_k_in_order_each_value_equally_often() {
+        assert_eq!(selection_sample(1, 5, 9, 10..15), vec![10, 11, 12, 13, 14]);
+        assert_eq!(selection_sample(1, 5, 5, 10..15), vec![10, 11, 12, 13, 14]);
+        assert!(selection_sample(1, 5, 0, 10..15).is_empty());
+        let (n, k, draws) = (20usize, 6usize, 20_000u64);
+        let mut count = vec![0u32; n];
+        let mut pairs = 0u32;
+        for seed in 0..draws {
+            let s = selection_sample(seed, n, k, 0..n);
+            assert_eq!(s.len(), k, "seed {seed}");
+            assert!(s.windows(2).all(|w| w[0] < w[1]), "seed {seed}: {s:?}");
+            for &v in &s {
+                count[v] += 1;
+            }
+            pairs += u32::from(s.contains(&0) && s.contains(&(n - 1)));
+        }
+        // Each value with chance k/n (binomial sd ~ 65 of 6000); the first and last together
+        // with chance k(k-1)/(n(n-1)), as for a uniform k-subset.
+        let expect = draws as f64 * k as f64 / n as f64;
+        for (v, &c) in count.iter().enumerate() {
+            assert!(
+                (c as f64 - expect).abs() < 5.0 * 65.0,
+                "value {v}: {c} of ~{expect}"
+            );
+        }
+        let pair = draws as f64 * (k * (k - 1)) as f64 / (n * (n - 1)) as f64;
+        assert!(
+            (pairs as f64 - pair).abs() < 5.0 * pair.sqrt(),
+            "{pairs} pairs of ~{pair}"
+        );
     }
 
     #[test]

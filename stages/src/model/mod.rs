@@ -38,7 +38,7 @@ mod parity;
 #[cfg(test)]
 pub(crate) mod testing;
 
-pub use batch::{batch_indices, BatchOrder, RayBatch, RaySamples, RayTargets};
+pub use batch::{batch_indices, selection_sample, BatchOrder, RayBatch, RaySamples, RayTargets};
 pub use config::{
     EncodingKind, FieldConfig, FieldSpec, GridConfig, Losses, SkyColourInput, TrainConfig,
 };

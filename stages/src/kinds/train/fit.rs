@@ -10,8 +10,8 @@ use arrow::record_batch::RecordBatch;
 use super::params::TrainParams;
 use crate::geometry::{self, DVec3};
 use crate::model::{
-    fit, weights, BatchOrder, FieldSpec, LossTerm, LossTerms, ModelInfo, NamedWeight, RayBatch,
-    TrainConfig, TrainError,
+    fit, selection_sample, weights, BatchOrder, FieldSpec, LossTerm, LossTerms, ModelInfo,
+    NamedWeight, RayBatch, TrainConfig, TrainError,
 };
 use crate::rng::{mix, SplitMix64};
 use crate::sampling::{self, ImageRays, JitterLabels, JitteredRays, PrimInfo, TrainImage};
@@ -94,18 +94,36 @@ pub fn spec_for(prims: &PrimInfo, cameras: &[DVec3], config: &TrainConfig) -> Fi
 /// Rays of the selected cameras (empty: every camera) that cross a primitive and no moving
 /// object's box: the ones training draws from.
 pub(super) fn candidates(rays: &ImageRays, cameras: &[u8]) -> Vec<u32> {
-    let used = || {
-        rays.images
-            .iter()
-            .filter(|im| cameras.is_empty() || cameras.contains(&im.camera))
-    };
-    // Counted first: tens of millions of ids, and a growing Vec would hold up to twice that.
-    let n = used().map(|im| trained_pixels(im).count()).sum();
-    let mut out = Vec::with_capacity(n);
-    for im in used() {
-        out.extend(trained_pixels(im).map(|p| im.first_ray + p));
-    }
-    out
+    let n = candidate_count(rays, cameras);
+    candidate_sample(rays, cameras, n, 0, n)
+}
+
+/// How many [`candidates`] there are.
+pub(super) fn candidate_count(rays: &ImageRays, cameras: &[u8]) -> usize {
+    used_images(rays, cameras)
+        .map(|im| trained_pixels(im).count())
+        .sum()
+}
+
+/// `k` of the `n` [`candidates`] (ascending), chosen uniformly by `seed` (all when `k >= n`).
+/// Counted first when all are wanted: tens of millions of ids, which a growing Vec would
+/// hold up to twice over.
+pub(super) fn candidate_sample(
+    rays: &ImageRays,
+    cameras: &[u8],
+    n: usize,
+    seed: u64,
+    k: usize,
+) -> Vec<u32> {
+    let ids =
+        used_images(rays, cameras).flat_map(|im| trained_pixels(im).map(move |p| im.first_ray + p));
+    selection_sample(seed, n, k, ids)
+}
+
+fn used_images<'a>(rays: &'a ImageRays, cameras: &'a [u8]) -> impl Iterator<Item = &'a TrainImage> {
+    rays.images
+        .iter()
+        .filter(move |im| cameras.is_empty() || cameras.contains(&im.camera))
 }
 
 /// The pixels of `im` training draws: those crossing a primitive, less the moving ones (both

@@ -63,6 +63,9 @@ impl TypedStage for Train {
     const OUTPUTS: &'static [&'static str] = &["weights", "model", "train_log"];
     const BUDGET_PARAM: Option<&'static str> = Some("schedule.iterations");
     const UPDATES: bool = true;
+    // 1: an update draws the rest of each batch from a uniform sample of the candidate rays
+    // (as many as it draws) instead of a shuffle of all of them.
+    const UPDATE_VERSION: u32 = 1;
     const PARENT_INPUTS: &'static [(&'static str, &'static str)] = &[("scene", "primitives")];
     const UPDATE_ONLY: &'static [&'static str] = &["update"];
     const MOVED: &'static [(&'static str, &'static str)] = params::MOVED;

@@ -6,7 +6,8 @@
 use arrow::compute::concat_batches;
 
 use super::fit::{
-    candidates, from_scratch, nothing_crossed, outputs, training_rays, LogColumns, Steps,
+    candidate_count, candidate_sample, from_scratch, nothing_crossed, outputs, training_rays,
+    LogColumns, Steps,
 };
 use super::params::TrainParams;
 use crate::geometry::{
@@ -15,6 +16,7 @@ use crate::geometry::{
 };
 use crate::kinds::edited::Edited;
 use crate::model::{weights, BatchOrder};
+use crate::rng::mix;
 use crate::stage::{Changed, Inputs, Lineage, Previous, Progress, Result, StageError, Updated};
 
 /// Training can go on from the previous weights when only the primitives (and so the plan)
@@ -64,8 +66,8 @@ pub(super) fn update(
     drop(edit);
     // Before the candidates: its passing allocations stay below theirs.
     let edited = edited_rays(&rays, &p.cameras, &changed);
-    let all = candidates(&rays, &p.cameras);
-    if all.is_empty() {
+    let n_all = candidate_count(&rays, &p.cameras);
+    if n_all == 0 {
         return Err(StageError::Input(nothing_crossed(inputs, &p.cameras)?));
     }
     let log_before = previous.output("train_log")?.whole()?;
@@ -88,14 +90,20 @@ pub(super) fn update(
     config.iterations = iterations;
     config.optimiser.lr *= p.update.lr_factor;
     let mut trainer = p.backend.trainer_from(&config, info.spec.clone(), before)?;
-    let batch = p.schedule.rays_per_batch.min(all.len());
+    let batch = p.schedule.rays_per_batch.min(n_all);
     let from_edited = ((batch as f64 * p.update.edited_share).round() as usize).min(batch);
-    let (training, n_edited) = (all.len() as f64, edited.len());
+    let (training, n_edited) = (n_all as f64, edited.len());
     let seed = p.seed ^ 0x5EED_ED17;
     let mut edited_order =
         (from_edited > 0).then(|| BatchOrder::over(seed, edited, from_edited.min(n_edited)));
-    let mut all_order =
-        (batch > from_edited).then(|| BatchOrder::over(!seed, all, batch - from_edited));
+    // The rest of each batch from every ray: the run's draws of them, a uniform sample (the
+    // first pass of a shuffle of all, in law) instead of the tens of millions of ids, so an
+    // update holds less than a run from scratch.
+    let mut all_order = (batch > from_edited).then(|| {
+        let draws = iterations.saturating_mul(batch - from_edited);
+        let all = candidate_sample(&rays, &p.cameras, n_all, mix(seed), draws);
+        BatchOrder::over(!seed, all, batch - from_edited)
+    });
     let first = tables_last_iteration(log_before)? + 1;
     let steps = Steps {
         iterations,
