@@ -188,4 +188,21 @@ mod tests {
         );
         std::fs::remove_dir_all(&dir).unwrap();
     }
+
+    /// The suite files shipped beside the built-in one parse, with the edits of the built-in's.
+    #[test]
+    fn the_shipped_kitti360_suite_parses() {
+        let file = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/benches/suites/edits-kitti360.yaml"
+        );
+        let s = load(file).unwrap().expect("an edits suite");
+        let built_in = load("edits").unwrap().unwrap();
+        assert_eq!(
+            s.pipeline.as_deref(),
+            Some(Path::new("pipelines/kitti360.yaml"))
+        );
+        let names = |s: &EditsSuite| s.edits.iter().map(|e| e.name.clone()).collect::<Vec<_>>();
+        assert_eq!(names(&s), names(&built_in));
+    }
 }

@@ -105,9 +105,9 @@ pub(super) fn candidate_count(rays: &ImageRays, cameras: &[u8]) -> usize {
         .sum()
 }
 
-/// `k` of the `n` [`candidates`] (ascending), chosen uniformly by `seed` (all when `k >= n`).
-/// Counted first when all are wanted: tens of millions of ids, which a growing Vec would
-/// hold up to twice over.
+/// `k` of the `n` [`candidates`] ([`candidate_count`]), ascending, chosen uniformly by `seed`
+/// (all when `k >= n`). Sized before it is filled: tens of millions of ids, which a growing Vec
+/// would hold up to twice over.
 pub(super) fn candidate_sample(
     rays: &ImageRays,
     cameras: &[u8],
