@@ -41,15 +41,12 @@ pub fn stage_key(
     inputs: &BTreeMap<String, String>,
 ) -> String {
     // serde_json's Map is a BTreeMap (no `preserve_order`), so objects serialise sorted.
-    let canonical = json!({
+    hash_of(&json!({
         "kind": kind,
         "version": version,
         "params": params,
         "inputs": inputs,
-    });
-    blake3::hash(canonical.to_string().as_bytes())
-        .to_hex()
-        .to_string()
+    }))
 }
 
 /// The key of an entry updated from a parent (whose key is among `inputs`): as
@@ -63,13 +60,17 @@ pub fn update_key(
     if update_version == 0 {
         return stage_key(kind, version, params, inputs);
     }
-    let canonical = json!({
+    hash_of(&json!({
         "kind": kind,
         "version": version,
         "update_version": update_version,
         "params": params,
         "inputs": inputs,
-    });
+    }))
+}
+
+/// Hex blake3 of a canonical description.
+fn hash_of(canonical: &Value) -> String {
     blake3::hash(canonical.to_string().as_bytes())
         .to_hex()
         .to_string()
